@@ -1,0 +1,1 @@
+"""The HeadAdapt method on numpy arrays (Chen & Prakash 2007). Never imports bpy."""
