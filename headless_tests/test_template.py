@@ -263,3 +263,15 @@ def test_rebuilding_gives_the_same_asset(tmp_path, tpl):
     rebuilt = json.loads((tmp_path / "template.json").read_text())
     assert rebuilt["content_sha256"] == tpl.meta["content_sha256"]
     assert load_template(tmp_path).meta == tpl.meta
+
+
+def test_the_pictures_the_readmes_show_exist_and_are_small():
+    import re
+
+    for readme in (TEMPLATE_DIR / "README.md", TEMPLATE_DIR.parents[1] / "README.md"):
+        images = re.findall(r"!\[[^\]]*\]\(([^)]+)\)", readme.read_text())
+        assert images, readme
+        for rel in images:
+            path = (readme.parent / rel).resolve()
+            assert path.is_file(), (readme, rel)
+            assert 5_000 < path.stat().st_size < 200_000, path

@@ -1,0 +1,179 @@
+"""Render the README pictures of the template (Workbench, headless): docs/img/*.jpg.
+
+    ./ha python tools/render_pictures.py [--out docs/img]
+
+template_front_side.jpg: front and side views, FDPs as blue dots with their ids.
+template_anatomy.jpg: see-through skin over the skull, mandible, eyes, teeth, tongue and muscles.
+"""
+import argparse
+import math
+import pathlib
+import sys
+import tempfile
+
+import numpy as np
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+import bpy  # noqa: E402
+
+from headadapt_addon import scene  # noqa: E402
+from headadapt_addon.core.template import load_template  # noqa: E402
+
+VIEW_SIZE = (720, 820)
+
+
+def _setup(engine_scene):
+    r = engine_scene.render
+    r.engine = "BLENDER_WORKBENCH"
+    r.resolution_x, r.resolution_y = VIEW_SIZE
+    r.resolution_percentage = 100
+    r.film_transparent = False
+    r.image_settings.file_format = "PNG"
+    r.image_settings.color_mode = "RGB"
+    r.image_settings.compression = 100
+    sh = engine_scene.display.shading
+    sh.light = "STUDIO"
+    sh.color_type = "MATERIAL"
+    sh.show_cavity = True
+    sh.cavity_type = "WORLD"
+    engine_scene.world = engine_scene.world or bpy.data.worlds.new("World")
+    engine_scene.world.color = (1, 1, 1)
+    engine_scene.view_settings.view_transform = "Standard"
+
+
+def _camera(engine_scene, centre, direction, ortho_scale):
+    cam = bpy.data.cameras.new("cam")
+    cam.type = "ORTHO"
+    cam.ortho_scale = ortho_scale
+    obj = bpy.data.objects.new("cam", cam)
+    engine_scene.collection.objects.link(obj)
+    d = np.asarray(direction, float)
+    obj.location = np.asarray(centre) - 1.0 * d
+    obj.rotation_euler = (math.pi / 2, 0, math.atan2(-d[0], d[1]))
+    engine_scene.camera = obj
+    return obj
+
+
+def _label(text, location, collection, size=0.0052, colour=(0.0, 0.1, 0.55, 1), facing=(0, -1, 0)):
+    data = bpy.data.curves.new(f"label {text}", "FONT")
+    data.body = text
+    data.size = size
+    data.align_x = "LEFT"
+    mat = bpy.data.materials.new(f"label {text}")
+    mat.diffuse_color = colour
+    data.materials.append(mat)
+    obj = bpy.data.objects.new(f"label {text}", data)
+    obj.location = location
+    obj.rotation_euler = (math.pi / 2, 0, math.atan2(-facing[0], -facing[1]) if facing[1] else
+                          (math.pi / 2 if facing[0] > 0 else -math.pi / 2))
+    collection.objects.link(obj)
+    return obj
+
+
+def _dots(points, collection, colour, radius=0.0012, name="dots"):
+    mesh = bpy.data.meshes.new(name)
+    import bmesh
+    bm = bmesh.new()
+    for p in points:
+        bmesh.ops.create_uvsphere(bm, u_segments=10, v_segments=6, radius=radius,
+                                  matrix=__import__("mathutils").Matrix.Translation(p))
+    bm.to_mesh(mesh)
+    bm.free()
+    mat = bpy.data.materials.new(name)
+    mat.diffuse_color = colour
+    mesh.materials.append(mat)
+    obj = bpy.data.objects.new(name, mesh)
+    collection.objects.link(obj)
+    return obj
+
+
+def _render(path):
+    bpy.context.scene.render.filepath = str(path)
+    bpy.ops.render.render(write_still=True)
+
+
+def _side_by_side(paths, out):
+    images = [bpy.data.images.load(str(p)) for p in paths]
+    w, h = images[0].size
+    arrays = []
+    for img in images:
+        px = np.empty(w * h * 4, dtype=np.float32)
+        img.pixels.foreach_get(px)
+        arrays.append(px.reshape(h, w, 4))
+    combined = np.concatenate(arrays, axis=1)
+    img = bpy.data.images.new("combined", w * len(paths), h, alpha=False)
+    img.pixels.foreach_set(combined.ravel())
+    settings = bpy.context.scene.render.image_settings
+    settings.file_format, settings.quality = "JPEG", 82
+    img.save_render(str(out), scene=bpy.context.scene)
+    settings.file_format = "PNG"
+
+
+def main(argv=None):
+    """Render the pictures into --out; prints their paths and sizes."""
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--out", default=str(ROOT / "docs" / "img"))
+    args = parser.parse_args(argv)
+    out = pathlib.Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    tpl = load_template()
+    tmp = pathlib.Path(tempfile.mkdtemp(prefix="headadapt-render-"))
+
+    bpy.ops.wm.read_homefile(use_empty=True, use_factory_startup=True)
+    sc = bpy.context.scene
+    _setup(sc)
+    root = scene.add_template(tpl)
+    objs = scene.template_objects(root)
+    v = tpl.skin.verts
+    face = v[:, 2] > 0.60
+    centre = np.array([0.0, v[face, 1].mean(), 0.5 * (v[face, 2].min() + v[face, 2].max()) - 0.005])
+    labels = bpy.data.collections.new("labels")
+    sc.collection.children.link(labels)
+    pts = tpl.fdp_points()
+
+    # 1. front + side with FDP ids
+    for o in root.children_recursive:
+        o.hide_render = o.type != "MESH" or o.get("headadapt_part") in ("cranium", "mandible")
+    skin_pts = {k: p for k, p in pts.items() if tpl.meta["fdps"][k]["part"] == "skin"}
+    front = {k: p for k, p in skin_pts.items() if p[1] < centre[1] + 0.02 and not k.startswith("10.")}
+    side = {k: p for k, p in skin_pts.items() if p[0] > -0.005 and (k.startswith(("10.", "11.", "2.1", "9.3", "2.13")) or p[0] > 0.04)}
+    dots = _dots(list(skin_pts.values()), labels, (0.1, 0.35, 1.0, 1), name="fdp dots")
+    # labels on a plane in front of the head (orthographic views: depth does not move them)
+    y_front, x_side = v[:, 1].min() - 0.01, v[:, 0].max() + 0.01
+    front_labels = [_label(k, [p[0] + 0.0012, y_front, p[2] - 0.0008], labels) for k, p in front.items()]
+    side_labels = [_label(k, [x_side, p[1] - 0.0012, p[2] - 0.0008], labels, facing=(1, 0, 0))
+                   for k, p in side.items()]
+    for o in side_labels:
+        o.hide_render = True
+    _camera(sc, centre, (0, 1, 0), 0.285)
+    _render(tmp / "front.png")
+    for o in front_labels:
+        o.hide_render = True
+    for o in side_labels:
+        o.hide_render = False
+    _camera(sc, centre + [0, 0.03, 0], (-1, 0, 0), 0.285)
+    _render(tmp / "side.png")
+    _side_by_side([tmp / "front.png", tmp / "side.png"], out / "template_front_side.jpg")
+
+    # 2. anatomy: see-through skin, bones, eyes, teeth, tongue, muscles
+    for o in list(labels.objects):
+        o.hide_render = True
+    for o in root.children_recursive:
+        o.hide_render = o.get("headadapt_part") in ("fdp", "marker")
+    skin_mat = objs["skin"].data.materials[0]
+    skin_mat.diffuse_color = (0.86, 0.68, 0.58, 0.18)
+    skin_mat.surface_render_method = "BLENDED"
+    sc.display.shading.show_cavity = False
+    _camera(sc, centre, (0, 1, 0), 0.285)
+    _render(tmp / "a_front.png")
+    _camera(sc, centre + [0, 0.03, 0], (-1, 0, 0), 0.285)
+    _render(tmp / "a_side.png")
+    _side_by_side([tmp / "a_front.png", tmp / "a_side.png"], out / "template_anatomy.jpg")
+    for name in ("template_front_side.jpg", "template_anatomy.jpg"):
+        print(f"{out / name}: {(out / name).stat().st_size // 1024} kB")
+
+
+if __name__ == "__main__":
+    main(sys.argv[sys.argv.index("--") + 1:] if "--" in sys.argv else None)
