@@ -9,8 +9,8 @@ __version__ = "0.1.0"
 
 
 def _modules():
-    from . import ui
-    return (ui,)
+    from . import ops, picker, props, ui
+    return (props, ops, picker, ui)
 
 
 def register():

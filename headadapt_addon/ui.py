@@ -1,6 +1,11 @@
-"""Sidebar tab "HeadAdapt" in the 3D viewport: panels in the order of the work."""
+"""Sidebar tab "HeadAdapt" in the 3D viewport: panels in the order of the work, each showing state."""
+
+import json
 
 import bpy
+
+from . import landmarks
+from .core import mpeg4
 
 PANELS = (
     ("TEMPLATE", "Template"),
@@ -14,6 +19,112 @@ PANELS = (
 )
 
 
+def _settings(context):
+    return context.scene.headadapt
+
+
+def draw_template(layout, context):
+    s = _settings(context)
+    if s.template_root is not None and s.template_root.name in context.scene.objects:
+        layout.label(text=f"In scene: {s.template_root.name}", icon="CHECKMARK")
+    else:
+        layout.label(text="Not in the scene yet", icon="INFO")
+    layout.operator("headadapt.add_template", icon="ADD")
+
+
+def draw_scan(layout, context):
+    s = _settings(context)
+    layout.prop(s, "scan")
+    if s.scan is None:
+        layout.label(text="Pick the scanned head", icon="ERROR")
+    else:
+        layout.label(text=f"{len(s.scan.data.vertices):,} vertices, {len(s.scan.data.polygons):,} faces")
+    layout.operator("headadapt.use_active_as_scan", icon="EYEDROPPER")
+
+
+def draw_landmarks(layout, context):
+    s = _settings(context)
+    pts = landmarks.get_landmarks(s.scan)
+    missing_cal = [k for k in mpeg4.CALIBRATION_FDPS if k not in pts]
+    col = layout.column()
+    col.enabled = s.scan is not None
+    col.label(text=f"{len(pts)} of {len(mpeg4.FDPS)} FDPs placed")
+    col.label(text=("Calibration FDPs: all placed" if not missing_cal else
+                    "Calibration needs: " + ", ".join(missing_cal)),
+              icon="CHECKMARK" if not missing_cal else "ERROR")
+    col.prop(s, "active_fdp")
+    col.label(text=mpeg4.FDPS[s.active_fdp].label)
+    col.operator("headadapt.pick_landmarks", icon="RESTRICT_SELECT_OFF")
+    row = col.row(align=True)
+    row.operator("headadapt.suggest_landmarks", icon="LIGHT")
+    row.operator("headadapt.accept_suggestions", text="Accept")
+    row = col.row(align=True)
+    row.operator("headadapt.import_landmarks", icon="IMPORT")
+    row.operator("headadapt.export_landmarks", icon="EXPORT")
+    box = col.box().column(align=True)
+    for name in mpeg4.CALIBRATION_FDPS + tuple(k for k in pts if k not in mpeg4.CALIBRATION_FDPS):
+        row = box.row(align=True)
+        row.label(text=f"{name}  {mpeg4.FDPS[name].label}", icon="CHECKMARK" if name in pts else "BLANK1")
+        if name in pts:
+            row.operator("headadapt.clear_landmark", text="", icon="X").fdp = name
+
+
+def draw_calibrate(layout, context):
+    s = _settings(context)
+    layout.prop(s, "calibration")
+    if s.calibration_rms_mm >= 0:
+        layout.label(text=f"Calibrated: RMS {s.calibration_rms_mm:.2f} mm", icon="CHECKMARK")
+    layout.operator("headadapt.calibrate", icon="ORIENTATION_GLOBAL")
+
+
+def draw_adapt(layout, context):
+    s = _settings(context)
+    layout.prop(s, "max_levels")
+    layout.prop(s, "drop_flagged")
+    row = layout.row(align=True)
+    row.operator("headadapt.adapt", text="Adapt All Levels", icon="PLAY").levels = -1
+    row.operator("headadapt.adapt", text="Level 0 Only").levels = 0
+    if s.result_root is not None:
+        layout.label(text=f"Result: {s.result_root.name}", icon="CHECKMARK")
+
+
+def draw_anatomy(layout, context):
+    s = _settings(context)
+    if s.result_root is None:
+        layout.label(text="Adapt first: the anatomy follows the adaptation", icon="INFO")
+    else:
+        layout.label(text="Skull, muscles, eyes, teeth and tongue follow the result", icon="CHECKMARK")
+
+
+def draw_expressions(layout, context):
+    layout.label(text="Expression baking: not available yet", icon="INFO")
+
+
+def draw_report(layout, context):
+    s = _settings(context)
+    if not s.report_json:
+        layout.label(text="No adaptation yet")
+        return
+    rep = json.loads(s.report_json)
+    grid = layout.grid_flow(columns=5, even_columns=True, align=True)
+    for head in ("Level", "Pairs", "E_d", "E", "s"):
+        grid.label(text=head)
+    for lv in rep["levels"]:
+        mark = "*" if lv["level"] == rep["best_level"] else ""
+        for cell in (f"{lv['level']}{mark}", str(lv["pairs"]), f"{lv['E_d']:.3f}", f"{lv['E']:.3f}",
+                     f"{lv['seconds']:.2f}"):
+            grid.label(text=cell)
+    layout.label(text=rep.get("stopped_because", ""))
+    for name, why in rep.get("flagged_fdps", {}).items():
+        layout.label(text=f"FDP {name}: {why}", icon="ERROR")
+    layout.label(text="Heat map: colour attribute 'HeadAdapt distance' (Solid, Attribute)")
+
+
+DRAW = {"TEMPLATE": draw_template, "SCAN": draw_scan, "LANDMARKS": draw_landmarks,
+        "CALIBRATE": draw_calibrate, "ADAPT": draw_adapt, "ANATOMY": draw_anatomy,
+        "EXPRESSIONS": draw_expressions, "REPORT": draw_report}
+
+
 class HEADADAPT_PT_base:
     bl_space_type = "VIEW_3D"
     bl_region_type = "UI"
@@ -22,7 +133,7 @@ class HEADADAPT_PT_base:
 
 def _make_panel(key, label, order):
     def draw(self, context):
-        self.layout.label(text="Not available yet")
+        DRAW[key](self.layout, context)
 
     return type(
         f"HEADADAPT_PT_{key.lower()}",

@@ -1,0 +1,102 @@
+"""FDP landmarks stored on the scan object (custom property, survives save and reload) and picking.
+
+Landmarks are kept in the object's local coordinates (the scan file's frame and unit), so moving the
+object does not move them relative to the surface. Picking is a pure function of a world-space ray.
+"""
+
+import json
+
+import numpy as np
+
+from .core import mpeg4
+
+PROP = "headadapt_landmarks"
+SUGGESTED_PROP = "headadapt_suggested"
+
+
+def get_landmarks(obj, prop=PROP):
+    """{FDP id: (3,) local coordinates} stored on obj (empty dict when none)."""
+    if obj is None or prop not in obj:
+        return {}
+    try:
+        data = json.loads(obj[prop])
+    except (TypeError, ValueError):
+        return {}
+    return {k: np.asarray(v, dtype=np.float64) for k, v in sorted(data.items(), key=lambda kv: mpeg4.fdp_sort_key(kv[0]))}
+
+
+def set_landmarks(obj, points, prop=PROP):
+    """Store {FDP id: (3,) local coordinates} on obj, replacing what was there."""
+    ordered = {k: [float(c) for c in points[k]] for k in sorted(points, key=mpeg4.fdp_sort_key)}
+    obj[prop] = json.dumps(ordered)
+
+
+def world_points(obj, points):
+    """The same landmarks in world coordinates."""
+    m = np.array(obj.matrix_world)
+    return {k: m[:3, :3] @ p + m[:3, 3] for k, p in points.items()}
+
+
+def pick_point(obj, origin, direction, depsgraph=None):
+    """First hit of a world-space ray on obj: (hit, local location (3,), face index) -- no change to obj."""
+    from mathutils import Vector
+
+    inv = obj.matrix_world.inverted()
+    o = inv @ Vector(origin)
+    d = (inv.to_3x3() @ Vector(direction)).normalized()
+    hit, loc, _normal, face = obj.ray_cast(o, d, depsgraph=depsgraph) if depsgraph else obj.ray_cast(o, d)
+    return bool(hit), np.array(loc, dtype=np.float64), int(face)
+
+
+def next_missing(points, order=None, after=None):
+    """The next FDP id (standard order, starting after `after`) that has no point yet, or None."""
+    order = list(order or mpeg4.FDPS)
+    start = order.index(after) + 1 if after in order else 0
+    for name in order[start:] + order[:start]:
+        if name not in points:
+            return name
+    return None
+
+
+def place(obj, points, name, origin, direction):
+    """Place FDP `name` where a world ray hits obj; returns (new points dict, placed?)."""
+    hit, loc, _ = pick_point(obj, origin, direction)
+    if not hit:
+        return points, False
+    out = dict(points)
+    out[name] = loc
+    return out, True
+
+
+def remove_near(obj, points, origin, direction, radius):
+    """Remove the landmark nearest to where a world ray hits obj, if within radius (local units)."""
+    hit, loc, _ = pick_point(obj, origin, direction)
+    if not hit or not points:
+        return points, None
+    names = list(points)
+    d = np.linalg.norm(np.array([points[k] for k in names]) - loc, axis=1)
+    i = int(np.argmin(d))
+    if d[i] > radius:
+        return points, None
+    out = dict(points)
+    del out[names[i]]
+    return out, names[i]
+
+
+def mirror_suggestion(points, name):
+    """Where the partner of FDP `name` would sit by mirroring its placed partner across the
+    midline plane fitted to the placed midline FDPs (local coords), or None."""
+    partner = mpeg4.FDPS[name].mirror
+    if partner is None or partner not in points:
+        return None
+    mids = np.array([p for k, p in points.items() if mpeg4.FDPS[k].side == "M"])
+    pairs = [(points[k], points[mpeg4.FDPS[k].mirror]) for k in points
+             if mpeg4.FDPS[k].mirror in points and mpeg4.FDPS[k].side == "L"]
+    if len(pairs) >= 1:
+        normal = np.mean([a - b for a, b in pairs], axis=0)
+        centre = np.mean([0.5 * (a + b) for a, b in pairs] + list(mids), axis=0)
+    else:
+        return None
+    normal /= np.linalg.norm(normal)
+    p = points[partner]
+    return p - 2 * np.dot(p - centre, normal) * normal

@@ -1,0 +1,175 @@
+"""Modal landmark picking in the 3D viewport, with points and labels drawn by the gpu module.
+
+Click: place the selected FDP where the mouse ray hits the scan, then select the next missing one.
+Ctrl-click: remove the nearest FDP. M: place the selected FDP at its mirror suggestion.
+Right-click or Esc: finish. The placement logic lives in landmarks.py (tested headless).
+"""
+
+import bpy
+import numpy as np
+
+from . import landmarks
+from .core import mpeg4
+
+_draw_handles = []
+
+
+def _colours():
+    return {"placed": (0.2, 0.5, 1.0, 1.0), "active": (1.0, 0.85, 0.1, 1.0),
+            "suggested": (1.0, 0.4, 0.9, 1.0), "template": (0.3, 1.0, 0.4, 1.0)}
+
+
+def draw_landmarks_3d():
+    """Draw the scan's landmarks (and suggestions, and the active FDP on the template) as points."""
+    import gpu
+    from gpu_extras.batch import batch_for_shader
+
+    context = bpy.context
+    s = getattr(context.scene, "headadapt", None)
+    if s is None or s.scan is None:
+        return
+    col = _colours()
+    groups = {"placed": [], "active": [], "suggested": [], "template": []}
+    pts = landmarks.world_points(s.scan, landmarks.get_landmarks(s.scan))
+    for k, p in pts.items():
+        groups["active" if k == s.active_fdp else "placed"].append(p)
+    groups["suggested"] = list(landmarks.world_points(
+        s.scan, landmarks.get_landmarks(s.scan, landmarks.SUGGESTED_PROP)).values())
+    if s.template_root is not None:
+        for o in s.template_root.children_recursive:
+            if o.get("headadapt_fdp") == s.active_fdp:
+                groups["template"].append(np.array(o.matrix_world.translation))
+    shader = gpu.shader.from_builtin("POINT_UNIFORM_COLOR")
+    gpu.state.point_size_set(9.0)
+    gpu.state.depth_test_set("LESS_EQUAL")
+    for name, ps in groups.items():
+        if not ps:
+            continue
+        batch = batch_for_shader(shader, "POINTS", {"pos": [tuple(map(float, p)) for p in ps]})
+        shader.uniform_float("color", col[name])
+        batch.draw(shader)
+    gpu.state.depth_test_set("NONE")
+    gpu.state.point_size_set(1.0)
+
+
+def draw_labels_2d():
+    """Draw the FDP ids next to their points."""
+    import blf
+    from bpy_extras.view3d_utils import location_3d_to_region_2d
+
+    context = bpy.context
+    s = getattr(context.scene, "headadapt", None)
+    if s is None or s.scan is None or context.region_data is None:
+        return
+    pts = landmarks.world_points(s.scan, landmarks.get_landmarks(s.scan))
+    for k, p in pts.items():
+        xy = location_3d_to_region_2d(context.region, context.region_data, p)
+        if xy is None:
+            continue
+        blf.size(0, 13 if k == s.active_fdp else 11)
+        blf.color(0, *(_colours()["active"] if k == s.active_fdp else (1, 1, 1, 1)))
+        blf.position(0, xy[0] + 6, xy[1] + 4, 0)
+        blf.draw(0, k)
+
+
+def add_draw_handlers():
+    """Install the viewport overlay (once)."""
+    if not _draw_handles:
+        _draw_handles.append(bpy.types.SpaceView3D.draw_handler_add(draw_landmarks_3d, (), "WINDOW", "POST_VIEW"))
+        _draw_handles.append(bpy.types.SpaceView3D.draw_handler_add(draw_labels_2d, (), "WINDOW", "POST_PIXEL"))
+
+
+def remove_draw_handlers():
+    while _draw_handles:
+        handle = _draw_handles.pop()
+        try:
+            bpy.types.SpaceView3D.draw_handler_remove(handle, "WINDOW")
+        except ValueError:
+            pass
+
+
+def mouse_ray(context, event):
+    """World-space (origin, direction) of the mouse ray in the 3D region."""
+    from bpy_extras import view3d_utils
+
+    coord = (event.mouse_region_x, event.mouse_region_y)
+    origin = view3d_utils.region_2d_to_origin_3d(context.region, context.region_data, coord)
+    direction = view3d_utils.region_2d_to_vector_3d(context.region, context.region_data, coord)
+    return np.array(origin), np.array(direction)
+
+
+class HEADADAPT_OT_pick_landmarks(bpy.types.Operator):
+    """Click FDPs on the scan: click places the selected FDP and moves to the next missing one, Ctrl-click removes, M mirrors, Esc ends"""
+    bl_idname = "headadapt.pick_landmarks"
+    bl_label = "Pick Landmarks"
+    bl_options = {"REGISTER", "UNDO"}
+
+    @classmethod
+    def poll(cls, context):
+        s = context.scene.headadapt
+        return (s.scan is not None and s.scan.type == "MESH" and len(s.scan.data.polygons) > 0
+                and context.area is not None and context.area.type == "VIEW_3D")
+
+    def invoke(self, context, event):
+        add_draw_handlers()
+        context.window_manager.modal_handler_add(self)
+        context.workspace.status_text_set("HeadAdapt: click to place "
+                                          f"{context.scene.headadapt.active_fdp}, Ctrl-click removes, "
+                                          "M mirrors the partner, Esc/right-click ends")
+        return {"RUNNING_MODAL"}
+
+    def finish(self, context):
+        context.workspace.status_text_set(None)
+        context.area.tag_redraw()
+        return {"FINISHED"}
+
+    def modal(self, context, event):
+        s = context.scene.headadapt
+        if event.type in {"ESC", "RIGHTMOUSE"} and event.value == "PRESS":
+            return self.finish(context)
+        if event.type in {"MIDDLEMOUSE", "WHEELUPMOUSE", "WHEELDOWNMOUSE"} or event.type.startswith("NDOF"):
+            return {"PASS_THROUGH"}
+        if event.type == "M" and event.value == "PRESS":
+            pts = landmarks.get_landmarks(s.scan)
+            guess = landmarks.mirror_suggestion(pts, s.active_fdp)
+            if guess is not None:
+                pts[s.active_fdp] = guess
+                landmarks.set_landmarks(s.scan, pts)
+                self.report({"INFO"}, f"{s.active_fdp} placed by mirroring {mpeg4.FDPS[s.active_fdp].mirror}")
+            context.area.tag_redraw()
+            return {"RUNNING_MODAL"}
+        if event.type == "LEFTMOUSE" and event.value == "PRESS":
+            origin, direction = mouse_ray(context, event)
+            pts = landmarks.get_landmarks(s.scan)
+            if event.ctrl:
+                size = float(np.ptp(np.array([v[:] for v in s.scan.bound_box]), axis=0).max())
+                pts, removed = landmarks.remove_near(s.scan, pts, origin, direction, 0.03 * size)
+                if removed:
+                    landmarks.set_landmarks(s.scan, pts)
+                    self.report({"INFO"}, f"removed {removed}")
+            else:
+                pts, ok = landmarks.place(s.scan, pts, s.active_fdp, origin, direction)
+                if ok:
+                    landmarks.set_landmarks(s.scan, pts)
+                    nxt = landmarks.next_missing(pts, after=s.active_fdp)
+                    if nxt:
+                        s.active_fdp = nxt
+            context.area.tag_redraw()
+            return {"RUNNING_MODAL"}
+        return {"PASS_THROUGH"}
+
+
+classes = (HEADADAPT_OT_pick_landmarks,)
+
+
+def register():
+    for cls in classes:
+        bpy.utils.register_class(cls)
+    if not bpy.app.background:
+        add_draw_handlers()
+
+
+def unregister():
+    remove_draw_handlers()
+    for cls in reversed(classes):
+        bpy.utils.unregister_class(cls)
