@@ -1,28 +1,114 @@
 """Batch entry: ``python -m headadapt_addon.batch COMMAND ...`` or
-``blender -b --python headadapt_addon/batch.py -- COMMAND ...``."""
+``blender -b --python headadapt_addon/batch.py -- COMMAND ...``.
+
+Commands:
+  adapt --scan SCAN --landmarks L.json|L.pp --out DIR   adapt the template onto one scan
+  demo [--out DIR]                                      adapt onto the bundled sample scan
+"""
 
 import argparse
+import json
+import pathlib
 import sys
+import time
+
+if __name__ == "__main__" and not __package__:      # run as a script (blender --python batch.py)
+    sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
+    __package__ = "headadapt_addon"                  # noqa: A001
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+SAMPLE_DIR = ROOT / "assets" / "sample_scan"
 
 
 def build_parser():
     """The command-line interface of the batch job."""
-    parser = argparse.ArgumentParser(prog="headadapt", description=__doc__)
+    parser = argparse.ArgumentParser(prog="headadapt", description=__doc__.split("\n\n")[0])
     sub = parser.add_subparsers(dest="command", required=True)
-    sub.add_parser("demo", help="adapt the bundled template onto the bundled sample scan")
+
+    def common(p):
+        p.add_argument("--levels", type=int, default=5, help="maximum number of levels after level 0 (default 5)")
+        p.add_argument("--calibration", choices=("auto", "paper", "umeyama"), default="auto")
+        p.add_argument("--keep-flagged", action="store_true",
+                       help="keep FDPs flagged as wrongly clicked (default: drop them and say so)")
+        p.add_argument("--blend", help="also write a .blend with the result")
+
+    a = sub.add_parser("adapt", help="adapt the template onto a scan")
+    a.add_argument("--scan", required=True, help="scan mesh: OBJ, PLY or STL (any unit, any pose)")
+    a.add_argument("--landmarks", required=True, help='FDPs on the scan: JSON {"points": {"3.7": [x,y,z]}} or MeshLab .pp')
+    a.add_argument("--out", required=True, help="output folder (adapted_head.obj, report.json)")
+    common(a)
+    d = sub.add_parser("demo", help="adapt the bundled template onto the bundled sample scan")
+    d.add_argument("--out", default=str(ROOT / "out" / "demo"), help="output folder (default out/demo)")
+    common(d)
     return parser
 
 
+def run_adapt(scan_path, landmarks_path, out_dir, levels=5, calibration="auto", keep_flagged=False,
+              blend=None, log=print):
+    """Adapt the template onto one scan file; write adapted_head.obj + report.json (atomic); return the report."""
+    from .core import meshio
+    from .core.adapt import AdaptOptions, adapt
+    from .core.template import load_template
+
+    t0 = time.perf_counter()
+    out_dir = pathlib.Path(out_dir)
+    tpl = load_template()
+    verts, tris = meshio.read_mesh(scan_path)
+    points = meshio.read_landmarks(landmarks_path)
+    meta = meshio.read_landmarks.last_meta
+    markers = meta.get("markers")
+    options = AdaptOptions(max_levels=levels, calibration=calibration, drop_flagged=not keep_flagged)
+    log(f"headadapt: {pathlib.Path(scan_path).name}: {len(verts):,} vertices, {len(tris):,} triangles, "
+        f"{len(points)} FDPs")
+    result = adapt(tpl, verts, tris, points, options, markers=markers,
+                   progress=lambda f, msg: log(f"  {100 * f:5.1f}%  {msg}"))
+    report = {
+        "scan": str(scan_path), "landmarks": str(landmarks_path),
+        "template_sha256": tpl.meta["content_sha256"],
+        "scan_vertices": int(len(verts)), "scan_triangles": int(len(tris)),
+        **result.report(),
+        "total_seconds": time.perf_counter() - t0,
+    }
+    meshio.write_obj(out_dir / "adapted_head.obj", result.verts_scan, tpl.skin.tris,
+                     header="HeadAdapt adapted skin, template vertex order, scan frame and unit")
+    meshio.write_atomic(out_dir / "report.json", json.dumps(report, indent=1, default=float))
+    for lv in result.levels:
+        log(f"  level {lv.level}: {lv.method:5s} {lv.pairs:5d} pairs  E_d {lv.E_d:8.3f} mm^2  "
+            f"RMS {lv.E_d_rms_mm:6.3f} mm  E {lv.E:8.3f}  {lv.seconds:6.2f} s")
+    for name, why in result.flagged.items():
+        log(f"  FDP {name} flagged: {why}" + (" (dropped)" if name in result.dropped else ""))
+    log(f"headadapt: best level {result.best_level}; wrote {out_dir / 'adapted_head.obj'} and "
+        f"{out_dir / 'report.json'} in {report['total_seconds']:.2f} s")
+    if blend:
+        from . import blendout
+        blendout.write_blend(blend, tpl, result, verts, tris, points, report)
+        log(f"headadapt: wrote {blend}")
+    return report
+
+
 def main(argv=None):
-    """Run one batch command; returns the process exit code."""
+    """Run one batch command; returns the process exit code (0 ok, 2 bad input)."""
+    from .core.exceptions import HeadAdaptError
+
     if argv is None:
         argv = sys.argv[sys.argv.index("--") + 1:] if "--" in sys.argv else sys.argv[1:]
     args = build_parser().parse_args(argv)
-    if args.command == "demo":
-        print("headadapt: the demo needs the template asset, which is not built yet", file=sys.stderr)
+    try:
+        if args.command == "demo":
+            out = pathlib.Path(args.out)
+            run_adapt(SAMPLE_DIR / "scan.ply", SAMPLE_DIR / "landmarks.json", out, args.levels, args.calibration,
+                      args.keep_flagged, args.blend or str(out / "demo.blend"))
+        else:
+            run_adapt(args.scan, args.landmarks, args.out, args.levels, args.calibration, args.keep_flagged,
+                      args.blend)
+    except HeadAdaptError as exc:
+        print(f"headadapt: error: {exc}", file=sys.stderr)
         return 2
     return 0
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    code = main()
+    if "bpy" in sys.modules and getattr(sys.modules["bpy"].app, "background", False) and code:
+        sys.stderr.flush()
+    sys.exit(code)

@@ -1,0 +1,164 @@
+"""Head calibration (paper sec 3.1): the similarity that maps scan coordinates into the template frame.
+
+Two estimators: the paper's (rotation centre, Rz/Ry from the l axis, Rx from the m axis, scale from
+m; written frame-invariantly so any scan pose works) and the least-squares similarity over all
+common FDPs (Umeyama 1991). "auto" keeps the one with the lower RMS residual over all FDPs.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from . import mpeg4
+from .exceptions import LandmarkError
+
+MIN_FDPS = 4
+
+
+@dataclasses.dataclass(frozen=True)
+class Similarity:
+    """x -> scale * rotation @ x + translation (rotation proper, scale > 0)."""
+    scale: float
+    rotation: np.ndarray
+    translation: np.ndarray
+
+    def apply(self, points):
+        """Transform points (n,3) or (3,)."""
+        p = np.asarray(points, dtype=np.float64)
+        return self.scale * p @ self.rotation.T + self.translation
+
+    def inverse(self):
+        """The inverse similarity."""
+        r = self.rotation.T
+        return Similarity(1.0 / self.scale, r, -(r @ self.translation) / self.scale)
+
+    def compose(self, other):
+        """self after other: x -> self(other(x))."""
+        return Similarity(self.scale * other.scale, self.rotation @ other.rotation,
+                          self.apply(other.translation))
+
+    def matrix4(self):
+        """4x4 homogeneous matrix."""
+        m = np.eye(4)
+        m[:3, :3] = self.scale * self.rotation
+        m[:3, 3] = self.translation
+        return m
+
+
+def umeyama(src, dst, weights=None):
+    """Least-squares similarity taking src (n,3) onto dst (n,3) (Umeyama 1991, no reflections)."""
+    src, dst = np.asarray(src, float), np.asarray(dst, float)
+    w = np.ones(len(src)) if weights is None else np.asarray(weights, float)
+    w = w / w.sum()
+    mu_s, mu_d = w @ src, w @ dst
+    s0, d0 = src - mu_s, dst - mu_d
+    cov = (d0 * w[:, None]).T @ s0
+    u, sig, vt = np.linalg.svd(cov)
+    fix = np.eye(3)
+    if np.linalg.det(u) * np.linalg.det(vt) < 0:
+        fix[2, 2] = -1
+    rot = u @ fix @ vt
+    var = np.sum(w * np.sum(s0 * s0, axis=1))
+    scale = float(np.trace(np.diag(sig) @ fix) / var)
+    return Similarity(scale, rot, mu_d - scale * rot @ mu_s)
+
+
+def _paper_frame(p):
+    """(centre, frame rows x/y/z, |m|) of the paper's construction from the 8 calibration FDPs."""
+    l_axis = (p["3.7"] - p["3.12"]) + (p["10.9"] - p["10.10"]) + (p["8.3"] - p["8.4"])
+    m_axis = 0.5 * (p["3.7"] + p["3.12"]) - 0.5 * (p["8.3"] + p["8.4"])
+    x = l_axis / np.linalg.norm(l_axis)
+    y = m_axis - (m_axis @ x) * x
+    y /= np.linalg.norm(y)
+    z = np.cross(x, y)
+    face_mid = 0.25 * (p["8.3"] + p["8.4"] + p["3.7"] + p["3.12"])
+    ear_mid = 0.5 * (p["10.9"] + p["10.10"])
+    centre = face_mid + ((ear_mid - face_mid) @ z) * z     # face centre in x/y, ears' depth in z
+    return centre, np.stack([x, y, z]), float(np.linalg.norm(m_axis))
+
+
+def paper_calibration(scan_fdps, template_fdps):
+    """The paper's similarity (eq 3: q* = s R (q - q_c) + p_c) from FDPs 2.1, 11.1, 3.7, 3.12, 8.3, 8.4, 10.9, 10.10."""
+    missing = [k for k in mpeg4.CALIBRATION_FDPS if k not in scan_fdps]
+    if missing:
+        raise LandmarkError("the paper's calibration needs FDP " + ", ".join(
+            f"{k} ({mpeg4.FDPS[k].label})" for k in missing))
+    qc, fq, mq = _paper_frame({k: np.asarray(v, float) for k, v in scan_fdps.items()})
+    pc, fp, mp = _paper_frame({k: np.asarray(v, float) for k, v in template_fdps.items()})
+    rot = fp.T @ fq
+    scale = mp / mq
+    return Similarity(scale, rot, pc - scale * rot @ qc)
+
+
+def _residuals(sim, scan_fdps, template_fdps):
+    names = [k for k in scan_fdps if k in template_fdps]
+    q = sim.apply(np.array([scan_fdps[k] for k in names]))
+    p = np.array([template_fdps[k] for k in names])
+    d = np.linalg.norm(q - p, axis=1)
+    return float(np.sqrt(np.mean(d ** 2))), dict(zip(names, d.tolist()))
+
+
+def calibrate(scan_fdps, template_fdps, method="auto"):
+    """(Similarity scan -> template frame, info {method, rms, residuals}); rms in template units."""
+    common = {k: v for k, v in scan_fdps.items() if k in template_fdps}
+    if len(common) < MIN_FDPS:
+        raise LandmarkError(f"calibration needs at least {MIN_FDPS} FDPs on both the scan and the template "
+                            f"(the paper's method uses {', '.join(mpeg4.CALIBRATION_FDPS)}); got "
+                            f"{len(common)}: {', '.join(common) or 'none'}")
+    candidates = {}
+    have_paper = all(k in common for k in mpeg4.CALIBRATION_FDPS)
+    if method in ("paper", "auto") and (have_paper or method == "paper"):
+        candidates["paper"] = paper_calibration(common, template_fdps)
+    if method in ("umeyama", "auto"):
+        names = list(common)
+        candidates["umeyama"] = umeyama(np.array([common[k] for k in names]),
+                                        np.array([template_fdps[k] for k in names]))
+    if not candidates:
+        raise LandmarkError(f"unknown calibration method {method!r} (use 'auto', 'paper' or 'umeyama')")
+    scored = {name: _residuals(sim, common, template_fdps) for name, sim in candidates.items()}
+    best = min(scored, key=lambda name: scored[name][0])
+    rms, per = scored[best]
+    info = {"method": best, "rms": rms, "residuals": per,
+            "rms_by_method": {name: s[0] for name, s in scored.items()}}
+    return candidates[best], info
+
+
+def validate_landmarks(points, need=(), what="scan"):
+    """Checked float copies {id: (3,)} of landmarks; LandmarkError names the FDP or the problem.
+
+    Unknown names, wrong shapes, NaN/inf, missing FDPs from `need`, fewer than 4 FDPs,
+    two FDPs at one spot, all FDPs on one line or one plane.
+    """
+    out = {}
+    for name, xyz in points.items():
+        mpeg4.check_fdp_name(str(name))
+        arr = np.asarray(xyz, dtype=np.float64)
+        if arr.shape != (3,):
+            raise LandmarkError(f"FDP {name} on the {what} must be three numbers, got shape {arr.shape}")
+        if not np.isfinite(arr).all():
+            raise LandmarkError(f"FDP {name} ({mpeg4.FDPS[name].label}) on the {what} has NaN or infinite coordinates")
+        out[str(name)] = arr
+    missing = [k for k in need if k not in out]
+    if missing:
+        raise LandmarkError(f"the {what} lacks FDP " + ", ".join(f"{k} ({mpeg4.FDPS[k].label})" for k in missing))
+    if len(out) < MIN_FDPS:
+        raise LandmarkError(f"the {what} has {len(out)} FDP(s) ({', '.join(out) or 'none'}); calibration needs "
+                            f"at least {MIN_FDPS}, best the paper's 8: {', '.join(mpeg4.CALIBRATION_FDPS)}")
+    names = list(out)
+    p = np.array([out[k] for k in names])
+    spread = float(np.ptp(p, axis=0).max())
+    d = np.linalg.norm(p[:, None] - p[None], axis=2)
+    d[np.tril_indices(len(p))] = np.inf
+    i, j = np.unravel_index(np.argmin(d), d.shape)
+    if spread == 0 or d[i, j] < 1e-3 * spread:
+        raise LandmarkError(f"FDP {names[i]} and FDP {names[j]} on the {what} are at the same spot: "
+                            "one of them was clicked twice")
+    sv = np.linalg.svd(p - p.mean(axis=0), compute_uv=False)
+    if sv[1] < 1e-3 * sv[0]:
+        raise LandmarkError(f"all {len(p)} FDPs on the {what} lie on one line: calibration needs them spread over the face")
+    if sv[2] < 1e-3 * sv[0]:
+        raise LandmarkError(f"all {len(p)} FDPs on the {what} lie in one plane: calibration needs depth "
+                            "(add the ears 10.9/10.10 or the nose tip 9.3)")
+    return out

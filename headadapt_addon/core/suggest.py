@@ -1,0 +1,30 @@
+"""Fewer clicks: propose the missing FDPs on a scan from the ones already placed."""
+
+import numpy as np
+
+from . import calibration, rbf, spatial
+from .adapt import SCANNER_VISIBLE_PARTS
+
+
+def suggest_fdps(tpl, scan_verts, scan_tris, placed):
+    """{FDP id: (3,)} proposals in the scan's frame for every visible template FDP not in `placed`.
+
+    The template FDPs go through the calibration and the level-0 RBF of the placed FDPs, then snap
+    to the nearest point of the scan surface.
+    """
+    tpl_pts = {k: p for k, p in tpl.fdp_points().items() if tpl.meta["fdps"][k]["part"] in SCANNER_VISIBLE_PARTS}
+    given = calibration.validate_landmarks(placed, what="scan")
+    given = {k: v for k, v in given.items() if k in tpl_pts}
+    sim, _ = calibration.calibrate(given, tpl_pts)
+    names = list(given)
+    P = np.array([tpl_pts[k] for k in names])
+    Q = sim.apply(np.array([given[k] for k in names]))
+    f0 = rbf.fit_rbf(P, Q - P, rho=0.0)
+    todo = [k for k in tpl_pts if k not in given]
+    if not todo:
+        return {}
+    X = np.array([tpl_pts[k] for k in todo])
+    guess = sim.inverse().apply(X + f0(X))
+    query = spatial.MeshQuery(np.asarray(scan_verts, float), np.asarray(scan_tris))
+    snapped, _, _ = query.closest_points(guess)
+    return dict(zip(todo, snapped))

@@ -1,0 +1,157 @@
+"""Core numerics on exact data: calibration, RBF/CSRBF, mean curvature, spatial queries, E_d."""
+import numpy as np
+import pytest
+from scipy.spatial import ConvexHull
+from scipy.spatial.transform import Rotation
+
+from headadapt_addon.core import calibration, geometry, metrics, rbf, spatial
+from headadapt_addon.core.exceptions import LandmarkError, MeshError
+from headadapt_addon.core.template import load_template
+
+
+@pytest.fixture(scope="module")
+def tpl():
+    return load_template()
+
+
+@pytest.mark.parametrize("method", ["paper", "umeyama", "auto"])
+@pytest.mark.parametrize("angles,scale", [((150, -40, 70), 1000.0), ((-10, 5, 3), 1.0), ((90, 90, 0), 25.4)])
+def test_calibration_recovers_a_known_similarity(tpl, method, angles, scale):
+    fdp = tpl.fdp_points()
+    truth = calibration.Similarity(scale, Rotation.from_euler("zyx", angles, degrees=True).as_matrix(),
+                                   np.array([10.0, -300.0, 5.0]))
+    scan = {k: truth.apply(p) for k, p in fdp.items()}
+    sim, info = calibration.calibrate(scan, fdp, method)
+    assert np.abs(sim.compose(truth).matrix4() - np.eye(4)).max() < 1e-6
+    assert info["rms"] < 1e-9
+    back = sim.inverse().apply(sim.apply(scan["3.7"]))
+    np.testing.assert_allclose(back, scan["3.7"], rtol=1e-9)
+
+
+@pytest.mark.parametrize("case,needle", [("nan", "3.7"), ("unknown", "3.15"), ("duplicate", "3.12"),
+                                         ("coplanar", "plane"), ("missing", "10.9"), ("few", "at least 4")])
+def test_bad_landmarks_are_named(tpl, case, needle):
+    pts = {k: p.copy() for k, p in tpl.fdp_points().items()}
+    need = ()
+    if case == "nan":
+        pts["3.7"][1] = np.nan
+    elif case == "unknown":
+        pts["3.15"] = pts["3.7"]
+    elif case == "duplicate":
+        pts["3.12"] = pts["3.7"].copy()
+    elif case == "coplanar":
+        pts = {k: pts[k] * [1, 0, 1] for k in ("2.1", "11.1", "3.7", "3.12", "8.3", "8.4")}
+    elif case == "missing":
+        del pts["10.9"]
+        need = calibration.mpeg4.CALIBRATION_FDPS
+    elif case == "few":
+        pts = {k: pts[k] for k in ("3.7", "3.12", "9.3")}
+    with pytest.raises(LandmarkError, match=needle):
+        calibration.validate_landmarks(pts, need=need)
+
+
+def test_rbf_interpolates_with_rho_0_and_smooths_with_rho(tpl):
+    rng = np.random.default_rng(3)
+    p = np.array(list(tpl.fdp_points().values()))
+    smooth = 0.01 * np.sin(20 * p)                     # a smooth field, metres
+    noisy = smooth + rng.normal(0, 0.002, smooth.shape)
+    f = rbf.fit_rbf(p, noisy)
+    assert np.abs(f(p) - noisy).max() < 1e-6 * np.abs(noisy).max()
+    g = rbf.fit_rbf(p, noisy, rho=0.05)
+    assert np.abs(g(p) - noisy).max() > 1e-4                      # no longer interpolates
+    # smoothing pulls the fit toward the underlying smooth field
+    assert np.linalg.norm(g(p) - smooth) < np.linalg.norm(f(p) - smooth)
+
+
+def test_csrbf_is_sparse_interpolates_and_vanishes_outside_its_support(tpl):
+    rng = np.random.default_rng(4)
+    v = tpl.skin.verts
+    centres = v[rng.choice(len(v), 1500, replace=False)]
+    values = rng.normal(0, 0.001, (1500, 3))
+    sigma = 0.02
+    f = rbf.fit_csrbf(centres, values, sigma)
+    assert f.matrix.nnz < 0.1 * 1500 ** 2
+    np.testing.assert_allclose(f(centres), values, atol=1e-9)
+    far = v + rng.normal(size=v.shape)
+    far = far[np.min(np.linalg.norm(far[:, None] - centres[None], axis=2), axis=1) > sigma]
+    assert len(far) > 100 and np.all(f(far) == 0.0)
+
+
+def _sphere(radius, n=12000):
+    i = np.arange(n) + 0.5
+    phi, theta = np.arccos(1 - 2 * i / n), np.pi * (1 + 5 ** 0.5) * i
+    p = radius * np.c_[np.cos(theta) * np.sin(phi), np.sin(theta) * np.sin(phi), np.cos(phi)]
+    t = ConvexHull(p).simplices
+    flip = np.einsum("ij,ij->i", geometry.face_normals(p, t), p[t].mean(axis=1)) < 0
+    t[flip] = t[flip][:, ::-1]
+    return p, t
+
+
+@pytest.mark.parametrize("radius", [0.01, 0.1, 80.0])
+def test_mean_curvature_of_a_sphere_is_one_over_r(radius):
+    p, t = _sphere(radius)
+    h, valid = geometry.mean_curvature(p, t)
+    assert valid.all()
+    assert abs(np.median(h) * radius - 1) < 0.02
+    assert np.percentile(np.abs(h * radius - 1), 95) < 0.02
+
+
+def test_curvature_excludes_the_boundary():
+    p, t = _sphere(1.0)
+    keep = p[t].mean(axis=1)[:, 2] > 0
+    h, valid = geometry.mean_curvature(p, t[keep])
+    border = geometry.boundary_vertices(t[keep], len(p))
+    assert border.sum() > 50 and not valid[border].any()
+
+
+def test_mesh_checks_name_the_problem():
+    with pytest.raises(MeshError, match="no vertices"):
+        geometry.check_mesh(np.zeros((0, 3)), np.zeros((0, 3), int))
+    with pytest.raises(MeshError, match="not a triangle mesh"):
+        geometry.check_mesh(np.zeros((4, 3)), np.zeros((1, 4), int))
+    with pytest.raises(MeshError, match="NaN"):
+        geometry.check_mesh(np.array([[0, 0, 0], [1, 0, 0], [np.nan, 1, 0]]), np.array([[0, 1, 2]]))
+
+
+def test_queries_match_brute_force(tpl):
+    v, t = tpl.skin.verts, tpl.skin.tris
+    q = spatial.MeshQuery(v, t)
+    rng = np.random.default_rng(5)
+    pts = v[rng.integers(0, len(v), 200)] + rng.normal(0, 0.01, (200, 3))
+    _, _, d = q.closest_points(pts)
+    a, b, c = v[t[:, 0]], v[t[:, 1]], v[t[:, 2]]
+    for p, dp in zip(pts[:60], d[:60]):
+        cq, _ = spatial.closest_on_triangles(np.repeat(p[None], len(t), 0), a, b, c)
+        assert abs(np.linalg.norm(cq - p, axis=1).min() - dp) < 1e-12
+    dirs = rng.normal(size=(200, 3))
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    hits = q.ray_cast(pts, dirs, 0.02)
+    for k in range(60):
+        hit, tt, _, _ = spatial.ray_triangles(np.repeat(pts[k][None], len(t), 0), np.repeat(dirs[k][None], len(t), 0), a, b, c)
+        ok = hit & (np.abs(tt) <= 0.02)
+        assert ok.any() == hits.hit[k]
+        if ok.any():
+            assert abs(tt[ok][np.argmin(np.abs(tt[ok]))] - hits.t[k]) < 1e-12
+
+
+def test_distance_error_is_zero_on_itself_and_ignores_holes(tpl):
+    v, t = tpl.skin.verts, tpl.skin.tris
+    vn = geometry.vertex_normals(v, t)
+    w = tpl.region_weights[tpl.region]
+    q = spatial.MeshQuery(v, t)
+    de = metrics.distance_error(v, vn, q, geometry.face_normals(v, t), w, 0.016)
+    assert de.E_d == 0.0 and de.matched.mean() > 0.99   # (a few vertices on folds pick a face turned away)
+    # cut a hole in the forehead: the vertices over it get w = 0, E_d stays finite and small
+    fore = tpl.region_mask("forehead")
+    fi = np.flatnonzero(fore)
+    centre = v[fi[np.argmin(np.linalg.norm(v[fi] - v[fi].mean(axis=0), axis=1))]]   # a forehead vertex
+    cut = np.linalg.norm(v[t].mean(axis=1) - centre, axis=1) < 0.015
+    holed = t[~cut]
+    qh = spatial.MeshQuery(v, holed)
+    de = metrics.distance_error(v, vn, qh, geometry.face_normals(v, holed), w, 0.016, geometry.boundary_faces(holed))
+    inside = np.linalg.norm(v - centre, axis=1) < 0.010
+    assert inside.sum() > 5 and np.all(de.w[inside] == 0)
+    assert np.isfinite(de.E_d) and de.E_d < 1e-8
+    # flipped normals never match
+    de = metrics.distance_error(v, -vn, q, geometry.face_normals(v, t), w, 0.016)
+    assert de.matched.mean() < 0.01
