@@ -113,16 +113,18 @@ def test_mesh_checks_name_the_problem():
         geometry.check_mesh(np.array([[0, 0, 0], [1, 0, 0], [np.nan, 1, 0]]), np.array([[0, 1, 2]]))
 
 
-def test_queries_match_brute_force(tpl):
+@pytest.mark.parametrize("backend", ["numpy", "bvh"])
+def test_queries_match_brute_force(tpl, backend):
     v, t = tpl.skin.verts, tpl.skin.tris
-    q = spatial.MeshQuery(v, t)
+    q = spatial.MeshQuery(v, t, backend=backend)
+    assert q.backend == backend
     rng = np.random.default_rng(5)
     pts = v[rng.integers(0, len(v), 200)] + rng.normal(0, 0.01, (200, 3))
     _, _, d = q.closest_points(pts)
     a, b, c = v[t[:, 0]], v[t[:, 1]], v[t[:, 2]]
     for p, dp in zip(pts[:60], d[:60]):
         cq, _ = spatial.closest_on_triangles(np.repeat(p[None], len(t), 0), a, b, c)
-        assert abs(np.linalg.norm(cq - p, axis=1).min() - dp) < 1e-12
+        assert abs(np.linalg.norm(cq - p, axis=1).min() - dp) < (1e-12 if backend == "numpy" else 1e-6)
     dirs = rng.normal(size=(200, 3))
     dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
     hits = q.ray_cast(pts, dirs, 0.02)
@@ -131,7 +133,8 @@ def test_queries_match_brute_force(tpl):
         ok = hit & (np.abs(tt) <= 0.02)
         assert ok.any() == hits.hit[k]
         if ok.any():
-            assert abs(tt[ok][np.argmin(np.abs(tt[ok]))] - hits.t[k]) < 1e-12
+            assert abs(tt[ok][np.argmin(np.abs(tt[ok]))] - hits.t[k]) < (1e-12 if backend == "numpy" else 1e-6)
+            np.testing.assert_allclose(hits.bary[k] @ v[t[hits.face[k]]], hits.point[k], atol=1e-6)
 
 
 def test_distance_error_is_zero_on_itself_and_ignores_holes(tpl):
@@ -140,7 +143,7 @@ def test_distance_error_is_zero_on_itself_and_ignores_holes(tpl):
     w = tpl.region_weights[tpl.region]
     q = spatial.MeshQuery(v, t)
     de = metrics.distance_error(v, vn, q, geometry.face_normals(v, t), w, 0.016)
-    assert de.E_d == 0.0 and de.matched.mean() > 0.99   # (a few vertices on folds pick a face turned away)
+    assert de.E_d < 1e-12 and de.matched.mean() > 0.99   # 0 up to float32 BVH rounding; folds may pick a face turned away
     # cut a hole in the forehead: the vertices over it get w = 0, E_d stays finite and small
     fore = tpl.region_mask("forehead")
     fi = np.flatnonzero(fore)

@@ -24,7 +24,7 @@ SCANNER_VISIBLE_PARTS = ("skin", "eye_l", "eye_r")
 @dataclasses.dataclass(frozen=True)
 class AdaptOptions:
     """Settings of one adaptation run (lengths in metres of the template frame)."""
-    max_levels: int = 5                 # levels after level 0
+    max_levels: int = 4                 # levels after level 0
     pair_threshold: int = 500           # below: global RBF on all pairs; above: CSRBF offsets (sec 4.3)
     rho: float = 0.0                    # level-0 smoothing (eq 9), m
     support: float | None = None        # fixed CSRBF support sigma (m); default: support_factor x spacing
@@ -34,8 +34,11 @@ class AdaptOptions:
     off_surface_mm: float = 12.0        # an FDP farther than this from the scan surface is an error
     curvature_points: int = 150         # scan curvature points at level 1 (doubles per level)
     sample_spacing: float = 0.016       # spacing of surface samples at level 1 (halves per level), m
+    use_feature_mesh: bool = True       # pairs from feature-mesh subdivision (sec 4.1, Kahler et al.)
+    use_curvature: bool = True          # pairs from the scan's mean-curvature search (sec 4.1, appendix)
+    curvature_reach: float = 0.004      # farthest a curvature point may be from the template, m
     seam_band: float = 0.004            # no pairs within this of the inner-lip seam (template frame), m
-    support_factor: float = 4.0         # CSRBF support = this x the level's sample spacing (halves per level)
+    support_factor: float = 3.0         # CSRBF support = this x the level's sample spacing (halves per level)
     alpha: float = 1.0                  # weight of E_d in E (eq 24)
     beta: float = 0.01                  # weight of E_m in E (E_m sums over markers, E_d averages)
     stop_at_minimum: bool = True        # stop when E rises (sec 5.3)
@@ -236,9 +239,16 @@ def adapt(tpl, scan_verts, scan_tris, scan_fdps, options=AdaptOptions(), markers
     best, best_disp, best_funcs, best_dist = 0, disp, list(functions), last_dist[0]
 
     # feature mesh over the FDPs in use (missing FDPs simply have no triangles)
-    fm_p = P.copy()          # template side (undeformed template frame)
-    fm_q = Q.copy()          # scan side (calibrated)
-    fm_t = feature_mesh(fm_p)
+    fm_q = Q.copy()          # feature-mesh vertices, scan side (calibrated); the template side is
+    fm_t = feature_mesh(P)   # where they sit on the deformed template, which interpolates them
+    # the paper's box for the curvature search: eye to eye across, head top to mouth bottom
+    box_names = [n for n in ("3.7", "3.12", "11.1", "2.1") if n in q_fdp]
+    if len(box_names) == 4:
+        lo_x, hi_x = sorted((q_fdp["3.12"][0], q_fdp["3.7"][0]))
+        face_box = ((scan.verts[:, 0] > lo_x) & (scan.verts[:, 0] < hi_x) &
+                    (scan.verts[:, 2] < q_fdp["11.1"][2]) & (scan.verts[:, 2] > q_fdp["2.1"][2]))
+    else:
+        face_box = np.ones(len(scan.verts), bool)
     dead = np.zeros(len(fm_t), bool)
 
     for k in range(1, options.max_levels + 1):
@@ -247,51 +257,52 @@ def adapt(tpl, scan_verts, scan_tris, scan_fdps, options=AdaptOptions(), markers
         reach = max(threshold / 2 ** (k - 1), 0.002)
         new_p, new_q = [], []
 
-        # (a) feature-mesh subdivision with rays along the triangle normals (Kahler et al.)
-        live = np.flatnonzero(~dead)
+        cur = V + disp
+        cur_query = spatial.MeshQuery(cur, tpl.skin.tris)
+        cur_n = geometry.face_normals(cur, tpl.skin.tris)
+
+        # (a) feature-mesh subdivision (Kahler et al.): the deformed template and the scan share the
+        #     feature mesh (its vertices are FP pairs), so one ray from each triangle's barycentre
+        #     along its normal meets both surfaces: a new pair, and the triangle splits in three
+        live = np.flatnonzero(~dead) if options.use_feature_mesh else np.zeros(0, int)
         if len(live):
             tri = fm_t[live]
-            bp, bq = fm_p[tri].mean(axis=1), fm_q[tri].mean(axis=1)
-            npn = geometry.face_normals(fm_p, tri)
-            nqn = geometry.face_normals(fm_q, tri)
-            size = np.linalg.norm(fm_p[tri] - bp[:, None], axis=2).max(axis=1)
-            ht = tpl_query.ray_cast(bp, npn, np.minimum(size, reach))
-            hs = scan.query.ray_cast(bq, nqn, np.minimum(size * 1.5, reach))
-            ok = ht.hit & hs.hit
-            ok &= face_w[np.where(ht.hit, ht.face, 0)] > 0
-            ok &= ~scan.boundary_faces[np.where(hs.hit, hs.face, 0)]
-            ok &= np.einsum("ij,ij->i", tpl_face_n[np.where(ht.hit, ht.face, 0)],
-                            scan.face_normals[np.where(hs.hit, hs.face, 0)]) > 0
+            bq = fm_q[tri].mean(axis=1)
+            nq = geometry.face_normals(fm_q, tri)
+            size = np.linalg.norm(fm_q[tri] - bq[:, None], axis=2).max(axis=1)
+            lim = np.minimum(0.5 * size, reach)
+            ht = cur_query.ray_cast(bq, nq, lim)
+            hs = scan.query.ray_cast(bq, nq, lim)
+            ft, fs = np.where(ht.hit, ht.face, 0), np.where(hs.hit, hs.face, 0)
+            ok = ht.hit & hs.hit & (face_w[ft] > 0) & ~scan.boundary_faces[fs]
+            ok &= np.einsum("ij,ij->i", cur_n[ft], scan.face_normals[fs]) > 0.5
             dead[live[~ok]] = True
             acc = live[ok]
             if len(acc):
-                base = len(fm_p)
-                fm_p = np.vstack([fm_p, ht.point[ok]])
+                tp = np.einsum("ij,ijk->ik", ht.bary[ok], V[tpl.skin.tris[ft[ok]]])
+                base = len(fm_q)
                 fm_q = np.vstack([fm_q, hs.point[ok]])
                 idx = base + np.arange(len(acc))
                 a, b, c = fm_t[acc, 0], fm_t[acc, 1], fm_t[acc, 2]
                 fm_t[acc] = np.c_[a, b, idx]
                 fm_t = np.vstack([fm_t, np.c_[b, c, idx], np.c_[c, a, idx]])
                 dead = np.concatenate([dead, np.zeros(2 * len(acc), bool)])
-                new_p.append(ht.point[ok])
+                new_p.append(tp)
                 new_q.append(hs.point[ok])
 
-        # (b) mean-curvature search on the scan, matched to the current template by normal rays
+        # (b) mean-curvature search on the scan (appendix), inside the face box the paper uses,
+        #     matched to the current template by rays along the scan normal
         H, valid = scan.curvature()
-        cand = np.flatnonzero(valid & ~_near_boundary(scan))
+        cand = np.flatnonzero(valid & ~_near_boundary(scan) & face_box)
         n_pick = options.curvature_points * 2 ** (k - 1)
-        if len(cand):
+        if len(cand) and options.use_curvature:
             order = cand[np.argsort(-np.abs(H[cand]))]
             pick = _spread(scan.verts[order[: n_pick * 6]], threshold / 2 ** (k + 1))[:n_pick]
             src = order[pick]
-            cur = V + disp
-            cur_query = spatial.MeshQuery(cur, tpl.skin.tris)
-            hit = cur_query.ray_cast(scan.verts[src], scan.vertex_normals[src], reach)
-            ok = hit.hit.copy()
+            hit = cur_query.ray_cast(scan.verts[src], scan.vertex_normals[src], min(reach, options.curvature_reach))
             f = np.where(hit.hit, hit.face, 0)
-            ok &= face_w[f] > 0
-            cur_n = geometry.face_normals(cur, tpl.skin.tris)
-            ok &= np.einsum("ij,ij->i", cur_n[f], scan.vertex_normals[src]) > 0
+            ok = hit.hit & (face_w[f] > 0)
+            ok &= np.einsum("ij,ij->i", cur_n[f], scan.vertex_normals[src]) > 0.7
             if ok.any():
                 tp = np.einsum("ij,ijk->ik", hit.bary[ok], V[tpl.skin.tris[f[ok]]])
                 new_p.append(tp)
@@ -300,7 +311,6 @@ def adapt(tpl, scan_verts, scan_tris, scan_fdps, options=AdaptOptions(), markers
         # (c) surface samples: template vertices spread `spacing` apart, along the current normal to the
         #     scan (Kahler-style rays on a denser set; spacing halves per level)
         spacing = options.sample_spacing / 2 ** (k - 1)
-        cur = V + disp
         cur_vn = geometry.vertex_normals(cur, tpl.skin.tris)
         seen = np.flatnonzero(vert_w > 0)
         pick = seen[_spread(V[seen], spacing)]
