@@ -60,7 +60,7 @@ def build_result_objects(tpl, result, target_scene, scan_matrix=None):
     for o in root.children_recursive:
         if "headadapt_fdp" in o:
             o.location = fdp_pts[o["headadapt_fdp"]]
-    dist_mm = np.nan_to_num(result.distances * 1000.0, nan=3.0)
+    dist_mm = result.distances * 1000.0
     bridge.set_point_colors(objs["skin"].data, "HeadAdapt distance", heat_colours(dist_mm))
     m = mathutils.Matrix(result.similarity.inverse().matrix4().tolist())
     root.matrix_world = (scan_matrix if scan_matrix is not None else mathutils.Matrix.Identity(4)) @ m

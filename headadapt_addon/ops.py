@@ -235,12 +235,15 @@ class HEADADAPT_OT_calibrate(_Base, bpy.types.Operator):
 
 
 def heat_colours(dist_mm, limit_mm=3.0):
-    """RGBA (n,4): blue at 0 mm through green and yellow to red at limit_mm and beyond."""
-    t = np.clip(np.asarray(dist_mm) / limit_mm, 0.0, 1.0)
+    """RGBA (n,4): blue at 0 mm through green and yellow to red at limit_mm and beyond; grey where NaN (no scan)."""
+    dist_mm = np.asarray(dist_mm, dtype=float)
+    t = np.clip(np.nan_to_num(dist_mm, nan=0.0) / limit_mm, 0.0, 1.0)
     r = np.clip(2 * t, 0, 1)
     g = np.clip(2 - 2 * t, 0, 1) * np.clip(2 * t + 0.3, 0, 1)
     b = np.clip(1 - 2 * t, 0, 1)
-    return np.c_[r, g, b, np.ones_like(t)]
+    rgba = np.c_[r, g, b, np.ones_like(t)]
+    rgba[np.isnan(dist_mm)] = (0.6, 0.6, 0.6, 1.0)
+    return rgba
 
 
 class HEADADAPT_OT_adapt(_Base, bpy.types.Operator):

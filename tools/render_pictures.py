@@ -111,6 +111,36 @@ def _side_by_side(paths, out):
     settings.file_format = "PNG"
 
 
+def render_demo(out, tmp):
+    """Sample scan (grey) beside the adapted head coloured by its distance to the scan."""
+    from headadapt_addon import blendout, bridge
+    from headadapt_addon.core import meshio
+    from headadapt_addon.core.adapt import adapt
+
+    tpl = load_template()
+    sample = ROOT / "assets" / "sample_scan"
+    verts, tris = meshio.read_mesh(sample / "scan.ply")
+    result = adapt(tpl, verts, tris, meshio.read_landmarks(sample / "landmarks.json"))
+    bpy.ops.wm.read_homefile(use_empty=True, use_factory_startup=True)
+    sc = bpy.context.scene
+    _setup(sc)
+    # both shown in the template frame, side by side
+    scan_t = result.similarity.apply(verts)
+    scan_obj = bpy.data.objects.new("scan", bridge.new_mesh("scan", scan_t - [0.1, 0, 0], tris))
+    sc.collection.objects.link(scan_obj)
+    root = blendout.build_result_objects(tpl, result, sc)
+    root.matrix_world = __import__("mathutils").Matrix.Translation((0.1, 0, 0))
+    for o in root.children_recursive:
+        o.hide_render = o.get("headadapt_part") != "skin"
+    sc.display.shading.color_type = "VERTEX"
+    v = tpl.skin.verts
+    centre = np.array([0.0, v[:, 1].mean(), 0.5 * (v[:, 2].min() + v[:, 2].max()) + 0.02])
+    _camera(sc, centre, (0, 1, 0), 0.42)
+    sc.render.resolution_x, sc.render.resolution_y = 1200, 640
+    _render(tmp / "demo.png")
+    _side_by_side([tmp / "demo.png"], out / "demo_result.jpg")
+
+
 def main(argv=None):
     """Render the pictures into --out; prints their paths and sizes."""
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
@@ -171,7 +201,9 @@ def main(argv=None):
     _camera(sc, centre + [0, 0.03, 0], (-1, 0, 0), 0.285)
     _render(tmp / "a_side.png")
     _side_by_side([tmp / "a_front.png", tmp / "a_side.png"], out / "template_anatomy.jpg")
-    for name in ("template_front_side.jpg", "template_anatomy.jpg"):
+    # 3. the demo: the bundled sample scan, and the template adapted onto it (distance heat map)
+    render_demo(out, tmp)
+    for name in ("template_front_side.jpg", "template_anatomy.jpg", "demo_result.jpg"):
         print(f"{out / name}: {(out / name).stat().st_size // 1024} kB")
 
 

@@ -24,18 +24,19 @@ def face_normals(v, t):
 def vertex_normals(v, t):
     """Area-weighted unit vertex normals (n,3); zero for vertices in no triangle."""
     fn = np.cross(v[t[:, 1]] - v[t[:, 0]], v[t[:, 2]] - v[t[:, 0]])
-    vn = np.zeros((len(v), 3))
-    for k in range(3):
-        np.add.at(vn, t[:, k], fn)
+    idx, w = t.ravel(), np.repeat(fn, 3, axis=0)
+    vn = np.stack([np.bincount(idx, weights=w[:, c], minlength=len(v)) for c in range(3)], axis=1)
     length = np.linalg.norm(vn, axis=1, keepdims=True)
     return np.divide(vn, length, out=np.zeros_like(vn), where=length > 0)
 
 
 def boundary_edges(t):
     """Edges (e,2) used by exactly one triangle (sorted vertex pairs)."""
-    e = np.sort(np.concatenate([t[:, [0, 1]], t[:, [1, 2]], t[:, [2, 0]]]), axis=1)
-    uniq, count = np.unique(e, axis=0, return_counts=True)
-    return uniq[count == 1]
+    e = np.sort(np.concatenate([t[:, [0, 1]], t[:, [1, 2]], t[:, [2, 0]]]), axis=1).astype(np.int64)
+    n = int(e.max()) + 1 if len(e) else 1
+    key, count = np.unique(e[:, 0] * n + e[:, 1], return_counts=True)
+    single = key[count == 1]
+    return np.c_[single // n, single % n]
 
 
 def boundary_vertices(t, n):
@@ -85,9 +86,7 @@ def cotan_laplacian(v, t):
     any_obt = obtuse.any(axis=1)
     am = np.stack([vor0, vor1, vor2], axis=1)
     am[any_obt] = np.where(obtuse[any_obt], area[any_obt, None] / 2, area[any_obt, None] / 4)
-    A = np.zeros(n)
-    for k in range(3):
-        np.add.at(A, t[:, k], am[:, k])
+    A = np.bincount(t.ravel(), weights=am.ravel(), minlength=n)
     return L, A
 
 

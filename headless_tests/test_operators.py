@@ -1,0 +1,143 @@
+"""Every operator through bpy.ops on the bundled template and sample scan: results, undo, bad input."""
+import json
+
+import numpy as np
+import pytest
+
+import headadapt_addon
+from headadapt_addon.core import meshio
+from headadapt_addon.batch import SAMPLE_DIR
+
+
+@pytest.fixture
+def ui_scene():
+    """Factory startup (with a window and a 3D view), the add-on registered; yields an override dict."""
+    import bpy
+
+    bpy.ops.wm.read_homefile(use_empty=False, use_factory_startup=True)
+    for obj in list(bpy.data.objects):
+        bpy.data.objects.remove(obj)
+    headadapt_addon.register()
+    win = bpy.context.window_manager.windows[0]
+    area = next(a for a in win.screen.areas if a.type == "VIEW_3D")
+    yield {"window": win, "screen": win.screen, "area": area}
+    headadapt_addon.unregister()
+
+
+def _add_scan(name="scan", with_faces=True):
+    import bpy
+    from headadapt_addon import bridge
+
+    v, t = meshio.read_mesh(SAMPLE_DIR / "scan.ply")
+    mesh = bridge.new_mesh(name, v, t) if with_faces else bridge.new_mesh(name, v, np.zeros((0, 3), int))
+    obj = bpy.data.objects.new(name, mesh)
+    bpy.context.scene.collection.objects.link(obj)
+    bpy.context.view_layer.objects.active = obj
+    obj.select_set(True)
+    return obj
+
+
+def _verts(obj):
+    from headadapt_addon import bridge
+    return bridge.mesh_arrays(obj, world=False)[0]
+
+
+def test_the_whole_workflow_runs_through_bpy_ops(ui_scene):
+    import bpy
+    from headadapt_addon import landmarks
+
+    with bpy.context.temp_override(**ui_scene):
+        assert bpy.ops.headadapt.add_template() == {"FINISHED"}
+        scan = _add_scan()
+        before = _verts(scan)
+        assert bpy.ops.headadapt.use_active_as_scan() == {"FINISHED"}
+        assert bpy.ops.headadapt.import_landmarks(filepath=str(SAMPLE_DIR / "landmarks.json")) == {"FINISHED"}
+        clicks = landmarks.get_landmarks(scan)
+        assert len(clicks) == len(meshio.read_landmarks(SAMPLE_DIR / "landmarks.json"))
+        # keep only the calibration FDPs, let the add-on suggest the rest
+        keep = {k: clicks[k] for k in ("2.1", "11.1", "3.7", "3.12", "8.3", "8.4", "10.9", "10.10")}
+        landmarks.set_landmarks(scan, keep)
+        assert bpy.ops.headadapt.suggest_landmarks() == {"FINISHED"}
+        suggested = landmarks.get_landmarks(scan, landmarks.SUGGESTED_PROP)
+        err = [np.linalg.norm(suggested[k] - clicks[k]) for k in suggested if k in clicks]
+        assert len(err) > 50 and np.median(err) < 6.0          # mm on the sample scan
+        assert bpy.ops.headadapt.accept_suggestions() == {"FINISHED"}
+        landmarks.set_landmarks(scan, clicks)
+        assert bpy.ops.headadapt.calibrate() == {"FINISHED"}
+        assert 0 <= bpy.context.scene.headadapt.calibration_rms_mm < 10
+        assert bpy.ops.headadapt.adapt() == {"FINISHED"}
+        root = bpy.context.scene.headadapt.result_root
+        assert root is not None and root.users_collection[0].name.startswith("HeadAdapt result")
+        skin = next(o for o in root.children_recursive if o.get("headadapt_part") == "skin")
+        assert "HeadAdapt distance" in skin.data.color_attributes
+        rep = json.loads(bpy.context.scene.headadapt.report_json)
+        assert rep["levels"][rep["best_level"]]["E_d_rms_mm"] < 1.0
+        np.testing.assert_array_equal(_verts(scan), before)     # the scan is never changed
+
+
+def test_undo_restores_the_scene_after_adapt(ui_scene):
+    import bpy
+
+    with bpy.context.temp_override(**ui_scene):
+        scan = _add_scan()
+        bpy.context.scene.headadapt.scan = scan
+        bpy.ops.headadapt.import_landmarks(filepath=str(SAMPLE_DIR / "landmarks.json"))
+        bpy.ops.ed.undo_push(message="before adapt")
+        n_objects = len(bpy.data.objects)
+        assert bpy.ops.headadapt.adapt(levels=1) == {"FINISHED"}
+        assert len(bpy.data.objects) > n_objects
+        assert "UNDO" in bpy.types.HEADADAPT_OT_adapt.bl_options
+        bpy.ops.ed.undo_push(message="Adapt")   # what the UI does after an operator flagged UNDO
+        bpy.ops.ed.undo()
+        assert len(bpy.data.objects) == n_objects
+        assert not any(c.name.startswith("HeadAdapt result") for c in bpy.data.collections if c.users)
+
+
+def test_bad_input_gets_a_clear_report_and_changes_nothing(ui_scene, tmp_path):
+    import bpy
+    from headadapt_addon import landmarks
+
+    with bpy.context.temp_override(**ui_scene):
+        # no scan: the operators that need one cannot run
+        assert not bpy.ops.headadapt.calibrate.poll()
+        assert not bpy.ops.headadapt.adapt.poll()
+        # a scan with no faces
+        empty = _add_scan("points", with_faces=False)
+        with pytest.raises(RuntimeError, match="no faces"):
+            bpy.ops.headadapt.use_active_as_scan()
+        assert bpy.context.scene.headadapt.scan is None
+        # missing calibration FDPs
+        scan = _add_scan()
+        bpy.context.scene.headadapt.scan = scan
+        landmarks.set_landmarks(scan, {"3.7": [0.0, 0.0, 0.0]})
+        assert not bpy.ops.headadapt.calibrate.poll() and not bpy.ops.headadapt.adapt.poll()
+        # a landmark file made for another template
+        other = tmp_path / "other.json"
+        other.write_text(json.dumps({"points": {"3.7": [1, 2, 3]}, "template_sha256": "0" * 64}))
+        with pytest.raises(RuntimeError, match="another template"):
+            bpy.ops.headadapt.import_landmarks(filepath=str(other))
+        assert list(landmarks.get_landmarks(scan)) == ["3.7"]
+        # an unwritable output path
+        blocker = tmp_path / "file"
+        blocker.write_text("")
+        with pytest.raises(RuntimeError, match="cannot write"):
+            bpy.ops.headadapt.export_landmarks(filepath=str(blocker / "sub" / "l.json"))
+        assert empty.name in bpy.data.objects
+
+
+def test_batch_writes_a_blend_that_reopens_with_the_report(tmp_path):
+    import subprocess
+    import sys
+
+    out = tmp_path / "o"
+    proc = subprocess.run([sys.executable, "-m", "headadapt_addon.batch", "adapt", "--scan", str(SAMPLE_DIR / "scan.ply"),
+                           "--landmarks", str(SAMPLE_DIR / "landmarks.json"), "--out", str(out), "--levels", "1",
+                           "--blend", str(out / "head.blend")], capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr
+    check = ("import bpy, json, sys; bpy.ops.wm.open_mainfile(filepath=sys.argv[1]);"
+             "root = bpy.data.objects['HA Adapted head']; rep = json.loads(root['headadapt_report']);"
+             "scan = bpy.data.objects['scan'];"
+             "print('OK', len(rep['levels']), 'HeadAdapt report' in bpy.data.texts, 'headadapt_landmarks' in scan,"
+             " len([o for o in root.children_recursive if o.type == 'MESH']))")
+    res = subprocess.run([sys.executable, "-c", check, str(out / "head.blend")], capture_output=True, text=True)
+    assert "OK 2 True True 8" in res.stdout, res.stdout + res.stderr
