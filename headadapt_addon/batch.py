@@ -3,6 +3,7 @@
 
 Commands:
   adapt --scan SCAN --landmarks L.json|L.pp --out DIR   adapt the template onto one scan
+  folder --folder DIR --out DIR [--jobs N]              adapt every scan + landmarks pair in a folder
   demo [--out DIR]                                      adapt onto the bundled sample scan
 """
 
@@ -26,7 +27,7 @@ def build_parser():
     sub = parser.add_subparsers(dest="command", required=True)
 
     def common(p):
-        p.add_argument("--levels", type=int, default=5, help="maximum number of levels after level 0 (default 5)")
+        p.add_argument("--levels", type=int, default=4, help="maximum number of levels after level 0 (default 4)")
         p.add_argument("--calibration", choices=("auto", "paper", "umeyama"), default="auto")
         p.add_argument("--keep-flagged", action="store_true",
                        help="keep FDPs flagged as wrongly clicked (default: drop them and say so)")
@@ -37,13 +38,18 @@ def build_parser():
     a.add_argument("--landmarks", required=True, help='FDPs on the scan: JSON {"points": {"3.7": [x,y,z]}} or MeshLab .pp')
     a.add_argument("--out", required=True, help="output folder (adapted_head.obj, report.json)")
     common(a)
+    f = sub.add_parser("folder", help="adapt every scan + landmarks pair in a folder (process pool)")
+    f.add_argument("--folder", required=True, help="folder of NAME.obj|ply|stl with NAME.json or NAME.pp beside it")
+    f.add_argument("--out", required=True, help="output folder; one sub-folder per scan, plus summary.json")
+    f.add_argument("--jobs", type=int, default=0, help="worker processes (default: the number of cores)")
+    common(f)
     d = sub.add_parser("demo", help="adapt the bundled template onto the bundled sample scan")
     d.add_argument("--out", default=str(ROOT / "out" / "demo"), help="output folder (default out/demo)")
     common(d)
     return parser
 
 
-def run_adapt(scan_path, landmarks_path, out_dir, levels=5, calibration="auto", keep_flagged=False,
+def run_adapt(scan_path, landmarks_path, out_dir, levels=4, calibration="auto", keep_flagged=False,
               blend=None, log=print):
     """Adapt the template onto one scan file; write adapted_head.obj + report.json (atomic); return the report."""
     from .core import meshio
@@ -86,6 +92,58 @@ def run_adapt(scan_path, landmarks_path, out_dir, levels=5, calibration="auto", 
     return report
 
 
+def find_pairs(folder):
+    """[(scan path, landmark path or None)] for every scan file in folder, sorted by name."""
+    folder = pathlib.Path(folder)
+    out = []
+    for scan in sorted(p for p in folder.iterdir() if p.suffix.lower() in (".obj", ".ply", ".stl")):
+        marks = [scan.with_suffix(s) for s in (".json", ".pp") if scan.with_suffix(s).is_file()]
+        out.append((scan, marks[0] if marks else None))
+    return out
+
+
+def _folder_job(job):
+    scan, marks, out_dir, levels, calibration, keep_flagged, blend = job
+    from .core.exceptions import HeadAdaptError
+    if marks is None:
+        return {"scan": str(scan), "ok": False, "error": f"no landmark file {scan.stem}.json or {scan.stem}.pp beside it"}
+    try:
+        rep = run_adapt(scan, marks, out_dir, levels, calibration, keep_flagged,
+                        str(pathlib.Path(out_dir) / f"{scan.stem}.blend") if blend else None, log=lambda *a: None)
+    except HeadAdaptError as exc:
+        return {"scan": str(scan), "ok": False, "error": str(exc)}
+    best = rep["levels"][rep["best_level"]]
+    return {"scan": str(scan), "ok": True, "best_level": rep["best_level"], "E_d_rms_mm": best["E_d_rms_mm"],
+            "seconds": rep["total_seconds"], "flagged_fdps": list(rep["flagged_fdps"])}
+
+
+def run_folder(folder, out, jobs=0, levels=4, calibration="auto", keep_flagged=False, blend=False, log=print):
+    """Adapt every scan + landmarks pair of a folder in a process pool; failures are reported, not fatal."""
+    import concurrent.futures
+    import os
+
+    from .core import meshio
+    pairs = find_pairs(folder)
+    if not pairs:
+        from .core.exceptions import FileFormatError
+        raise FileFormatError(f"{folder}: no OBJ, PLY or STL scans in this folder")
+    out = pathlib.Path(out)
+    work = [(s, m, out / s.stem, levels, calibration, keep_flagged, blend) for s, m in pairs]
+    workers = jobs or min(len(work), os.cpu_count() or 1)
+    import multiprocessing
+    ctx = multiprocessing.get_context("spawn")     # bpy and fork do not mix
+    with concurrent.futures.ProcessPoolExecutor(max_workers=workers, mp_context=ctx) as pool:
+        results = list(pool.map(_folder_job, work))
+    for r in results:
+        log(f"  {'ok  ' if r['ok'] else 'FAIL'} {pathlib.Path(r['scan']).name}: "
+            + (f"level {r['best_level']}, RMS {r['E_d_rms_mm']:.2f} mm, {r['seconds']:.1f} s" if r["ok"] else r["error"]))
+    summary = {"folder": str(folder), "done": sum(r["ok"] for r in results),
+               "failed": sum(not r["ok"] for r in results), "scans": results}
+    meshio.write_atomic(out / "summary.json", json.dumps(summary, indent=1, default=float))
+    log(f"headadapt: {summary['done']} adapted, {summary['failed']} failed; wrote {out / 'summary.json'}")
+    return summary
+
+
 def main(argv=None):
     """Run one batch command; returns the process exit code (0 ok, 2 bad input)."""
     from .core.exceptions import HeadAdaptError
@@ -98,6 +156,10 @@ def main(argv=None):
             out = pathlib.Path(args.out)
             run_adapt(SAMPLE_DIR / "scan.ply", SAMPLE_DIR / "landmarks.json", out, args.levels, args.calibration,
                       args.keep_flagged, args.blend or str(out / "demo.blend"))
+        elif args.command == "folder":
+            summary = run_folder(args.folder, args.out, args.jobs, args.levels, args.calibration, args.keep_flagged,
+                                 bool(args.blend))
+            return 0 if summary["done"] else 1
         else:
             run_adapt(args.scan, args.landmarks, args.out, args.levels, args.calibration, args.keep_flagged,
                       args.blend)

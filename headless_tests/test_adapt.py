@@ -1,6 +1,7 @@
 """Adaptation on generated heads (tools/testheads.py): errors fall level by level, lips and eyes
 behave, wrong clicks are named, bad input gets clear errors, the batch command writes its files."""
 import json
+import pathlib
 import subprocess
 import sys
 
@@ -162,3 +163,38 @@ def test_batch_reports_bad_files_without_traceback(tmp_path):
     assert proc.returncode == 2
     assert "nope.ply" in proc.stderr and "Traceback" not in proc.stderr
     assert not (tmp_path / "o").exists()
+
+
+def test_folder_mode_adapts_the_good_pairs_and_reports_the_bad(tmp_path, heads):
+    import shutil
+
+    from tools import testheads
+
+    src = tmp_path / "scans"
+    for i, head in enumerate(heads):
+        testheads.save_head(head, tmp_path / f"h{i}")
+        shutil.copy(tmp_path / f"h{i}" / "scan.ply", src / f"head{i}.ply") if src.exists() else (
+            src.mkdir(), shutil.copy(tmp_path / f"h{i}" / "scan.ply", src / f"head{i}.ply"))
+        shutil.copy(tmp_path / f"h{i}" / "landmarks.json", src / f"head{i}.json")
+    shutil.copy(src / "head0.ply", src / "nolandmarks.ply")
+    (src / "broken.obj").write_text("v 0 0 0\n")
+    (src / "broken.json").write_text('{"points": {}}')
+    proc = subprocess.run([sys.executable, "-m", "headadapt_addon.batch", "folder", "--folder", str(src), "--out",
+                           str(tmp_path / "out"), "--levels", "1", "--jobs", "2"], capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr
+    summary = json.loads((tmp_path / "out" / "summary.json").read_text())
+    assert summary["done"] == 2 and summary["failed"] == 2
+    errors = {pathlib.Path(r["scan"]).name: r.get("error", "") for r in summary["scans"]}
+    assert "no landmark file" in errors["nolandmarks.ply"] and "broken.obj" in errors["broken.obj"]
+    assert (tmp_path / "out" / "head1" / "adapted_head.obj").is_file()
+
+
+def test_batch_runs_as_a_blender_script_with_double_dash(tmp_path):
+    """The `blender -b --python headadapt_addon/batch.py -- adapt ...` path: script mode, args after --."""
+    from headadapt_addon.batch import ROOT, SAMPLE_DIR
+
+    proc = subprocess.run([sys.executable, str(ROOT / "headadapt_addon" / "batch.py"), "--", "adapt", "--scan",
+                           str(SAMPLE_DIR / "scan.ply"), "--landmarks", str(SAMPLE_DIR / "landmarks.json"),
+                           "--out", str(tmp_path), "--levels", "1"], capture_output=True, text=True, cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    assert (tmp_path / "adapted_head.obj").is_file() and (tmp_path / "report.json").is_file()

@@ -1,5 +1,7 @@
 """Every operator through bpy.ops on the bundled template and sample scan: results, undo, bad input."""
 import json
+import pathlib
+import tempfile
 
 import numpy as np
 import pytest
@@ -62,6 +64,16 @@ def test_the_whole_workflow_runs_through_bpy_ops(ui_scene):
         err = [np.linalg.norm(suggested[k] - clicks[k]) for k in suggested if k in clicks]
         assert len(err) > 50 and np.median(err) < 6.0          # mm on the sample scan
         assert bpy.ops.headadapt.accept_suggestions() == {"FINISHED"}
+        landmarks.set_landmarks(scan, clicks)
+        for suffix in (".json", ".pp"):
+            path = pathlib.Path(tempfile.mkdtemp()) / f"l{suffix}"
+            assert bpy.ops.headadapt.export_landmarks(filepath=str(path)) == {"FINISHED"}
+            back = meshio.read_landmarks(path)
+            assert all(np.array_equal(back[k], clicks[k]) for k in clicks)
+        assert bpy.ops.headadapt.clear_landmark(fdp="9.3") == {"FINISHED"}
+        assert "9.3" not in landmarks.get_landmarks(scan)
+        # the modal picker starts (Blender reports a started modal operator as PASS_THROUGH to Python)
+        assert bpy.ops.headadapt.pick_landmarks("INVOKE_DEFAULT") & {"RUNNING_MODAL", "PASS_THROUGH"}
         landmarks.set_landmarks(scan, clicks)
         assert bpy.ops.headadapt.calibrate() == {"FINISHED"}
         assert 0 <= bpy.context.scene.headadapt.calibration_rms_mm < 10

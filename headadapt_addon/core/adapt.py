@@ -38,6 +38,7 @@ class AdaptOptions:
     use_curvature: bool = True          # pairs from the scan's mean-curvature search (sec 4.1, appendix)
     curvature_reach: float = 0.004      # farthest a curvature point may be from the template, m
     seam_band: float = 0.004            # no pairs within this of the inner-lip seam (template frame), m
+    min_sample_spacing: float = 0.002   # finest surface-sample spacing, m
     support_factor: float = 3.0         # CSRBF support = this x the level's sample spacing (halves per level)
     alpha: float = 1.0                  # weight of E_d in E (eq 24)
     beta: float = 0.01                  # weight of E_m in E (E_m sums over markers, E_d averages)
@@ -310,7 +311,7 @@ def adapt(tpl, scan_verts, scan_tris, scan_fdps, options=AdaptOptions(), markers
 
         # (c) surface samples: template vertices spread `spacing` apart, along the current normal to the
         #     scan (Kahler-style rays on a denser set; spacing halves per level)
-        spacing = options.sample_spacing / 2 ** (k - 1)
+        spacing = max(options.sample_spacing / 2 ** (k - 1), options.min_sample_spacing)
         cur_vn = geometry.vertex_normals(cur, tpl.skin.tris)
         seen = np.flatnonzero(vert_w > 0)
         pick = seen[_spread(V[seen], spacing)]
