@@ -39,6 +39,7 @@ class AdaptOptions:
     curvature_reach: float = 0.004      # farthest a curvature point may be from the template, m
     seam_band: float = 0.004            # no pairs within this of the inner-lip seam (template frame), m
     min_sample_spacing: float = 0.002   # finest surface-sample spacing, m
+    thin_pairs: float = 0.5             # drop pairs closer than this x the level's spacing (0: keep all)
     support_factor: float = 3.0         # CSRBF support = this x the level's sample spacing (halves per level)
     alpha: float = 1.0                  # weight of E_d in E (eq 24)
     beta: float = 0.01                  # weight of E_m in E (E_m sums over markers, E_d averages)
@@ -144,9 +145,12 @@ class _ScanSide:
         self.boundary_faces = geometry.boundary_faces(tris)
         self._curv = None
 
-    def curvature(self):
+    def curvature(self, region=None):
+        """(H, valid) per scan vertex; with a vertex mask, computed on the triangles inside it only
+        (the cut's border counts as boundary, so its vertices are not valid)."""
         if self._curv is None:
-            self._curv = geometry.mean_curvature(self.verts, self.tris)
+            tris = self.tris if region is None else self.tris[region[self.tris].all(axis=1)]
+            self._curv = geometry.mean_curvature(self.verts, tris)
         return self._curv
 
 
@@ -293,7 +297,7 @@ def adapt(tpl, scan_verts, scan_tris, scan_fdps, options=AdaptOptions(), markers
 
         # (b) mean-curvature search on the scan (appendix), inside the face box the paper uses,
         #     matched to the current template by rays along the scan normal
-        H, valid = scan.curvature()
+        H, valid = scan.curvature(face_box)
         cand = np.flatnonzero(valid & ~_near_boundary(scan) & face_box)
         n_pick = options.curvature_points * 2 ** (k - 1)
         if len(cand) and options.use_curvature:
@@ -331,6 +335,10 @@ def adapt(tpl, scan_verts, scan_tris, scan_fdps, options=AdaptOptions(), markers
         add_p, add_q = add_p[far], add_q[far]
         pairs_p, pairs_q = np.vstack([pairs_p, add_p]), np.vstack([pairs_q, add_q])
         pairs_p, pairs_q = _dedupe(pairs_p, pairs_q, 2e-4)
+        if options.thin_pairs > 0:     # at most one pair per thin_pairs x spacing (FDPs and older pairs first)
+            keep = np.sort(_spread(pairs_p, options.thin_pairs * spacing))
+            keep = np.union1d(keep, np.arange(len(P)))
+            pairs_p, pairs_q = pairs_p[keep], pairs_q[keep]
         fit_p = np.vstack([pairs_p, V[seam]])
         fit_q = np.vstack([pairs_q, V[seam] + disp[seam]])
         fit_p, fit_q = _dedupe(fit_p, fit_q, 5e-4)
@@ -407,7 +415,7 @@ def _spread(points, radius):
     taken = np.zeros(len(points), bool)
     blocked = np.zeros(len(points), bool)
     neighbours = tree.query_ball_point(points, radius)
-    for i in range(len(points)):          # priority order; at most a few thousand candidates
+    for i in range(len(points)):          # priority order; a few thousand candidates at most
         if not blocked[i]:
             taken[i] = True
             blocked[neighbours[i]] = True
