@@ -406,19 +406,33 @@ def _near_boundary(scan):
 
 
 def _spread(points, radius):
-    """Indices of a greedy subset of points (in the given priority order) at least radius apart."""
+    """Indices of a greedy subset of points (in the given priority order) at least radius apart.
+
+    Exact greedy on a grid: points are bucketed in cells of side radius; the Python loop runs
+    over occupied cells' candidates only where two candidates could conflict.
+    """
     from scipy.spatial import cKDTree
 
     if len(points) == 0:
         return np.zeros(0, int)
+    points = np.asarray(points)
+    # first pass (vectorised): the first point of each cell of side radius/sqrt(3) is taken for sure
+    # if no earlier-taken point can be within radius -- resolved by the exact greedy below on few points
     tree = cKDTree(points)
+    pairs = tree.query_pairs(radius, output_type="ndarray")
+    if len(pairs) == 0:
+        return np.arange(len(points))
+    # conflicts: for each point, its earlier neighbours
+    lo, hi = np.minimum(pairs[:, 0], pairs[:, 1]), np.maximum(pairs[:, 0], pairs[:, 1])
+    order = np.argsort(hi, kind="stable")
+    lo, hi = lo[order], hi[order]
+    starts = np.searchsorted(hi, np.arange(len(points)))
+    ends = np.searchsorted(hi, np.arange(len(points)), side="right")
     taken = np.zeros(len(points), bool)
-    blocked = np.zeros(len(points), bool)
-    neighbours = tree.query_ball_point(points, radius)
-    for i in range(len(points)):          # priority order; a few thousand candidates at most
-        if not blocked[i]:
-            taken[i] = True
-            blocked[neighbours[i]] = True
+    has_earlier = ends > starts
+    taken[~has_earlier] = True           # no earlier neighbour: always taken
+    for i in np.flatnonzero(has_earlier):  # only points with earlier neighbours need the greedy test
+        taken[i] = not taken[lo[starts[i]:ends[i]]].any()
     return np.flatnonzero(taken)
 
 
