@@ -9,28 +9,16 @@ import bpy
 import numpy as np
 
 from . import bridge, scene
-from .core import calibration
+from .core.anatomy import transfer
 from .core.exceptions import FileFormatError
 
 RESULT_COLLECTION = "HeadAdapt result"
 
 
 def adapted_parts(tpl, result):
-    """{part: (n,3) verts} of every template mesh carried through the result (template frame, m).
-
-    Skin: the adapted skin; skull and mandible: through the final map; eyes, teeth, tongue: the
-    best similarity to their mapped vertices (they stay rigid).
-    """
-    out = {"skin": result.verts}
-    for name, part in tpl.parts.items():
-        if name == "skin":
-            continue
-        mapped = result.map_points(part.verts)
-        if name in ("cranium", "mandible"):
-            out[name] = mapped
-        else:
-            out[name] = calibration.umeyama(part.verts, mapped).apply(part.verts)
-    return out
+    """{part: (n,3) verts} of every template mesh carried through the result (template frame, m):
+    the paper's sec 6.2 transfer (core.anatomy)."""
+    return transfer(tpl, result).parts
 
 
 def build_result_objects(tpl, result, target_scene, scan_matrix=None):
@@ -46,20 +34,32 @@ def build_result_objects(tpl, result, target_scene, scan_matrix=None):
 
     coll = bpy.data.collections.new(RESULT_COLLECTION)
     target_scene.collection.children.link(coll)
-    parts = adapted_parts(tpl, result)
+    ana = transfer(tpl, result)
+    parts = ana.parts
     root = scene.add_template(tpl, coll, name="HA Adapted head")
     objs = scene.template_objects(root)
-    pivot = result.map_points(np.asarray(tpl.meta["jaw"]["pivot"])[None])[0]
+    pivot = ana.jaw_pivot
     objs["jaw_pivot"].location = pivot
     for name, verts in parts.items():
         offset = pivot if name in ("mandible", "teeth_lower") else 0.0
         bridge.set_vertex_positions(objs[name].data, verts - offset)
-    names = list(tpl.fdp_points())
-    moved = result.map_points(np.array(list(tpl.fdp_points().values())))
-    fdp_pts = dict(zip(names, moved))
+    muscles = {m["name"]: m for m in ana.muscles}
+    rings = {sph["name"]: sph for sph in ana.sphincters}
+    angles = np.linspace(0, 2 * np.pi, 48, endpoint=False)[:, None]
     for o in root.children_recursive:
         if "headadapt_fdp" in o:
-            o.location = fdp_pts[o["headadapt_fdp"]]
+            o.location = ana.fdps[o["headadapt_fdp"]]
+        name = o.get("headadapt_muscle")
+        if name in muscles:
+            pts = np.array([muscles[name]["attachment"], muscles[name]["insertion"]])
+        elif name in rings:
+            a, b = rings[name]["axes"]
+            pts = rings[name]["centre"] + np.cos(angles) * a + np.sin(angles) * b
+        else:
+            continue
+        co = np.hstack([pts, np.ones((len(pts), 1))]).astype(np.float32)
+        o.data.splines[0].points.foreach_set("co", co.ravel())
+    root["headadapt_fapus"] = json.dumps(ana.fapus)
     dist_mm = result.distances * 1000.0
     bridge.set_point_colors(objs["skin"].data, "HeadAdapt distance", heat_colours(dist_mm))
     m = mathutils.Matrix(result.similarity.inverse().matrix4().tolist())

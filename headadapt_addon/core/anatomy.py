@@ -1,0 +1,158 @@
+"""Anatomy transfer (paper sec 6.2): skull, mandible, muscles, sphincters, eyes, teeth, tongue, FAPUs.
+
+Everything in the template frame (metres); AdaptResult.to_scan takes points to the scan's frame.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from . import mpeg4
+from .calibration import Similarity
+
+# rigid parts and the FDPs that carry them (eq 25-28): x axis (a - b), y axis (c - d), reference set
+RIGID_FDPS = {
+    "eye_l": (("3.7", "3.11"), ("3.13", "3.9"), ("3.7", "3.9", "3.11", "3.13")),
+    "eye_r": (("3.8", "3.12"), ("3.14", "3.10"), ("3.8", "3.10", "3.12", "3.14")),
+    "teeth_upper": (("8.3", "8.4"), ("9.15", "8.1"), ("8.3", "8.4", "9.15", "8.1")),
+    "teeth_lower": (("8.3", "8.4"), ("8.2", "2.10"), ("8.3", "8.4", "8.2", "2.10")),
+    "tongue": (("8.3", "8.4"), ("8.2", "2.10"), ("8.3", "8.4", "8.2", "2.10")),
+}
+
+
+@dataclasses.dataclass
+class Anatomy:
+    """The transferred anatomy: part vertices, muscle ends, sphincters, FDPs, FAPUs, jaw pivot (m)."""
+    parts: dict
+    muscles: list
+    sphincters: list
+    fdps: dict
+    fapus: dict
+    jaw_pivot: np.ndarray
+    rigid: dict
+
+
+def _frame(p, x_pair, y_pair):
+    x = p[x_pair[0]] - p[x_pair[1]]
+    y = p[y_pair[0]] - p[y_pair[1]]
+    x = x / np.linalg.norm(x)
+    y = y - (y @ x) * x
+    y /= np.linalg.norm(y)
+    return np.stack([x, y, np.cross(x, y)])
+
+
+def rigid_from_fdps(part_verts, template_fdps, adapted_fdps, x_pair, y_pair, ref, centre=None):
+    """The paper's eq 25-28 similarity for a rigid part (uniform scale, rotation, translation).
+
+    Scale: the geometric mean of the two axis-length ratios (eq 25 multiplies them, which would
+    scale by an area ratio); rotation: the frame (x, y orthogonalised) of the adapted FDPs times the
+    inverse of the template's; the part's centre keeps its offset from the FDPs' mean (eq 26-27),
+    unless `centre` (where the adaptation map takes the part's centre) is given.
+    """
+    s, t = template_fdps, adapted_fdps
+    ratio = (np.linalg.norm(t[x_pair[0]] - t[x_pair[1]]) * np.linalg.norm(t[y_pair[0]] - t[y_pair[1]])
+             / (np.linalg.norm(s[x_pair[0]] - s[x_pair[1]]) * np.linalg.norm(s[y_pair[0]] - s[y_pair[1]])))
+    scale = float(np.sqrt(ratio))
+    rot = _frame(t, x_pair, y_pair).T @ _frame(s, x_pair, y_pair)
+    c_s = np.asarray(part_verts).mean(axis=0)
+    r_s = np.mean([s[k] for k in ref], axis=0)
+    r_t = np.mean([t[k] for k in ref], axis=0)
+    c_t = r_t - scale * rot @ (r_s - c_s) if centre is None else np.asarray(centre)   # eq 27
+    return Similarity(scale, rot, c_t - scale * rot @ c_s)      # eq 28: T(x) = s R (x - c_s) + c_t
+
+
+HIDDEN_REGIONS = ("mouth_interior", "eye_socket_l", "eye_socket_r")
+
+
+def keep_inside(tpl, bone_template, bone_mapped, skin_adapted, clearance=0.0015):  # noqa: C901
+    """Mapped bone points (n,3), moved where needed to at least `clearance` under the adapted skin.
+
+    Each bone point keeps, from the template, its nearest point on the visible skin (face +
+    barycentric, not the lids folded behind the eyes nor the mouth bag); where the adapted skin
+    there is less than `clearance` above the mapped point (the scan is thinner than the template's
+    tissue), the point moves to `clearance` under it along the skin's normal. Template frame, m.
+    """
+    from .geometry import face_normals
+    from .spatial import MeshQuery, barycentric
+
+    hidden = np.isin(tpl.region, [tpl.region_names.index(r) for r in HIDDEN_REGIONS])
+    faces = tpl.skin.tris[~hidden[tpl.skin.tris].any(axis=1)]
+    near, face, depth0 = MeshQuery(tpl.skin.verts, faces).closest_points(bone_template)
+    clearance = np.minimum(clearance, 0.8 * depth0)      # never deeper than the template itself had it
+    v0 = tpl.skin.verts[faces[face]]
+    bary = barycentric(near, v0[:, 0], v0[:, 1], v0[:, 2])
+    skin_pt = np.einsum("ij,ijk->ik", bary, skin_adapted[faces[face]])
+    normal = face_normals(skin_adapted, faces[face])
+    out = np.asarray(bone_mapped, dtype=np.float64).copy()
+    depth = np.einsum("ij,ij->i", skin_pt - out, normal)
+    bad = depth < clearance
+    out[bad] = skin_pt[bad] - clearance[bad, None] * normal[bad]
+    # next to the pockets (eye sockets, mouth) the skin folds back: check those few points exactly
+    # (winding number) and walk any that ended in a pocket toward the bone's centre until inside
+    from scipy.spatial import cKDTree
+
+    from .inside import winding_numbers
+    near_pocket = np.flatnonzero(bad)[cKDTree(skin_adapted[hidden]).query(out[bad], distance_upper_bound=0.02)[0] < np.inf]
+    if len(near_pocket):
+        w = winding_numbers(out[near_pocket], skin_adapted, tpl.skin.tris)
+        still = near_pocket[w < 0.5]
+        if len(still):
+            centre = np.asarray(bone_mapped).mean(axis=0)
+            lo, hi = np.zeros(len(still)), np.ones(len(still))
+            for _ in range(16):
+                mid = 0.5 * (lo + hi)
+                ok = winding_numbers(out[still] + mid[:, None] * (centre - out[still]), skin_adapted, tpl.skin.tris) > 0.5
+                hi, lo = np.where(ok, mid, hi), np.where(ok, lo, mid)
+            step = centre - out[still]
+            out[still] += hi[:, None] * step + clearance[still, None] * step / np.linalg.norm(step, axis=1, keepdims=True)
+    return out
+
+
+def surface_point(verts, tris, ref):
+    """Point (3,) of a {"face", "bary"} reference on a mesh (verts (n,3), tris (k,3))."""
+    return np.asarray(ref["bary"]) @ verts[tris[ref["face"]]]
+
+
+def transfer(tpl, result):
+    """Carry the template's anatomy onto the adapted head of an AdaptResult (template frame, m)."""
+    parts = {"skin": result.verts}
+    tris = {name: part.tris for name, part in tpl.parts.items()}
+    for name in ("cranium", "mandible"):          # the skull through the final map (all last-level FPs)
+        parts[name] = keep_inside(tpl, tpl.parts[name].verts, result.map_points(tpl.parts[name].verts), result.verts)
+
+    tpl_fdps = tpl.fdp_points()
+    fdps = {}
+    for name, ref in tpl.meta["fdps"].items():
+        if ref["part"] == "skin":
+            fdps[name] = surface_point(parts["skin"], tris["skin"], ref)
+    rigid = {}
+    for name, (x_pair, y_pair, ref) in RIGID_FDPS.items():
+        # centre through the map (it carries the socket around the part), scale and turn by eq 25
+        centre = result.map_points(tpl.parts[name].verts.mean(axis=0)[None])[0]
+        sim = rigid_from_fdps(tpl.parts[name].verts, tpl_fdps, fdps, x_pair, y_pair, ref, centre)
+        rigid[name] = sim
+        parts[name] = sim.apply(tpl.parts[name].verts)
+    for name, ref in tpl.meta["fdps"].items():
+        if ref["part"] != "skin":
+            fdps[name] = surface_point(parts[ref["part"]], tris[ref["part"]], ref)
+
+    muscles = []
+    for m in tpl.meta["muscles"]:
+        muscles.append({"name": m["name"], "regions": m["regions"],
+                        "attachment": surface_point(parts[m["attachment"]["part"]], tris[m["attachment"]["part"]],
+                                                    m["attachment"]),
+                        "insertion": surface_point(parts[m["insertion"]["part"]], tris[m["insertion"]["part"]],
+                                                   m["insertion"])})
+    sphincters = []
+    for sph in tpl.meta["sphincters"]:
+        centre = result.map_points(np.asarray(sph["centre"])[None])[0]
+        axes = []
+        for axis, (a, b) in zip(sph["axes"], sph["scale_pairs"]):
+            ratio = np.linalg.norm(fdps[a] - fdps[b]) / np.linalg.norm(tpl_fdps[a] - tpl_fdps[b])
+            axes.append(np.asarray(axis) * ratio)
+        sphincters.append({"name": sph["name"], "centre": centre, "axes": axes, "regions": sph["regions"]})
+    pivot = result.map_points(np.asarray(tpl.meta["jaw"]["pivot"])[None])[0]
+    return Anatomy(parts=parts, muscles=muscles, sphincters=sphincters, fdps=fdps,
+                   fapus=mpeg4.measure_fapus(fdps), jaw_pivot=pivot, rigid=rigid)

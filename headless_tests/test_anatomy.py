@@ -1,0 +1,81 @@
+"""Anatomy transfer (paper sec 6.2) on adapted generated heads: muscles, skull, eyes, FAPUs."""
+import numpy as np
+import pytest
+
+from headadapt_addon.core import adapt, anatomy, spatial
+from headadapt_addon.core.inside import winding_numbers
+from headadapt_addon.core.template import load_template
+
+
+@pytest.fixture(scope="module")
+def tpl():
+    return load_template()
+
+
+@pytest.fixture(scope="module")
+def transferred(tpl):
+    testheads = pytest.importorskip("tools.testheads")
+    try:
+        heads = [testheads.make_head(seed) for seed in (3, 4)]
+    except FileNotFoundError as exc:
+        pytest.skip(str(exc))
+    out = []
+    for h in heads:
+        res = adapt.adapt(tpl, h.scan_verts, h.scan_tris, h.fdp_clicks)
+        out.append((h, res, anatomy.transfer(tpl, res)))
+    return out
+
+
+def fit_sphere(points):
+    """Least-squares sphere (centre, radius) through points (n,3)."""
+    a = np.c_[2 * points, np.ones(len(points))]
+    b = np.sum(points ** 2, axis=1)
+    sol = np.linalg.lstsq(a, b, rcond=None)[0]
+    return sol[:3], float(np.sqrt(sol[3] + sol[:3] @ sol[:3]))
+
+
+def test_muscle_ends_lie_on_their_surfaces_and_in_their_regions(tpl, transferred):
+    for _, _, ana in transferred:
+        skin_q = spatial.MeshQuery(ana.parts["skin"], tpl.skin.tris, backend="numpy")
+        for m, ref in zip(ana.muscles, tpl.meta["muscles"]):
+            _, face, d = skin_q.closest_points(m["insertion"][None])
+            assert d[0] < 1e-9, m["name"]
+            names = {tpl.region_names[r] for r in tpl.region[tpl.skin.tris[ref["insertion"]["face"]]]}
+            assert names & set(m["regions"]), (m["name"], names)
+            bone = ref["attachment"]["part"]
+            bone_q = spatial.MeshQuery(ana.parts[bone], tpl.parts[bone].tris, backend="numpy")
+            assert bone_q.closest_points(m["attachment"][None])[2][0] < 1e-9, m["name"]
+
+
+def test_the_skull_stays_inside_the_adapted_skin(tpl, transferred):
+    for _, _, ana in transferred:
+        for bone in ("cranium", "mandible"):
+            w = winding_numbers(ana.parts[bone], ana.parts["skin"], tpl.skin.tris)
+            assert w.min() > 0.5, (bone, w.min())
+
+
+def test_eyes_sit_in_their_sockets(tpl, transferred):
+    for side in ("l", "r"):
+        socket = tpl.region_mask(f"eye_socket_{side}")
+        base = tpl.parts[f"eye_{side}"].verts.mean(axis=0) - fit_sphere(tpl.skin.verts[socket])[0]
+        for _, _, ana in transferred:
+            centre = ana.parts[f"eye_{side}"].mean(axis=0)
+            socket_centre, _ = fit_sphere(ana.parts["skin"][socket])
+            # the eye keeps its place in the socket: within 2 mm of the template's own offset
+            assert np.linalg.norm(centre - socket_centre - base) < 2e-3, side
+
+
+def test_rigid_parts_stay_rigid_and_fapus_are_remeasured(tpl, transferred):
+    for head, _, ana in transferred:
+        for name, sim in ana.rigid.items():
+            v0, v1 = tpl.parts[name].verts, ana.parts[name]
+            d0 = np.linalg.norm(v0[1:] - v0[0], axis=1)
+            d1 = np.linalg.norm(v1[1:] - v1[0], axis=1)
+            np.testing.assert_allclose(d1, sim.scale * d0, rtol=1e-9)
+            assert 0.8 < sim.scale < 1.25, (name, sim.scale)
+        for unit in ("IRISD", "ES", "ENS", "MNS", "MW"):
+            assert ana.fapus[unit] > 0 and ana.fapus[unit] != tpl.meta["fapus"][unit]
+        # the sphincter round the mouth scales with the mouth width
+        oris = next(s for s in ana.sphincters if s["name"] == "orbicularis_oris")
+        ratio = np.linalg.norm(oris["axes"][0]) / np.linalg.norm(tpl.meta["sphincters"][0]["axes"][0])
+        assert ratio == pytest.approx(ana.fapus["MW"] / tpl.meta["fapus"]["MW"], rel=1e-9)
