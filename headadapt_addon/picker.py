@@ -151,6 +151,9 @@ class HEADADAPT_OT_pick_landmarks(bpy.types.Operator):
                 pts, ok = landmarks.place(s.scan, pts, s.active_fdp, origin, direction)
                 if ok:
                     landmarks.set_landmarks(s.scan, pts)
+                    sug = landmarks.get_landmarks(s.scan, landmarks.SUGGESTED_PROP)
+                    if sug.pop(s.active_fdp, None) is not None:      # a moved suggestion is accepted
+                        landmarks.set_landmarks(s.scan, sug, prop=landmarks.SUGGESTED_PROP)
                     nxt = landmarks.next_missing(pts, after=s.active_fdp)
                     if nxt:
                         s.active_fdp = nxt
