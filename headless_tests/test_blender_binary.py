@@ -1,0 +1,41 @@
+"""The batch job inside a real Blender binary: `blender -b --python headadapt_addon/batch.py -- adapt ...`.
+
+CI installs Debian's blender (3.4, system Python 3.11 with Debian's numpy and scipy); skipped where
+no `blender` is on the PATH.
+"""
+import json
+import shutil
+import subprocess
+
+import numpy as np
+import pytest
+
+from headadapt_addon.batch import ROOT, SAMPLE_DIR
+from headadapt_addon.core import meshio
+from headadapt_addon.core.template import load_template
+
+BLENDER = shutil.which("blender")
+pytestmark = pytest.mark.skipif(BLENDER is None, reason="no blender binary on the PATH")
+
+
+def _run(*args, cwd):
+    return subprocess.run([BLENDER, "-b", "--factory-startup", "--python", str(ROOT / "headadapt_addon" / "batch.py"),
+                           "--", *args], capture_output=True, text=True, cwd=cwd, timeout=600)
+
+
+def test_adapt_in_a_blender_binary_writes_the_same_kind_of_result(tmp_path):
+    proc = _run("adapt", "--scan", str(SAMPLE_DIR / "scan.ply"), "--landmarks", str(SAMPLE_DIR / "landmarks.json"),
+                "--out", str(tmp_path), "--levels", "2", "--blend", str(tmp_path / "head.blend"), cwd=tmp_path)
+    assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-2000:]
+    verts, tris = meshio.read_mesh(tmp_path / "adapted_head.obj")
+    np.testing.assert_array_equal(tris, load_template().skin.tris)
+    rep = json.loads((tmp_path / "report.json").read_text())
+    assert rep["levels"][rep["best_level"]]["E_d_rms_mm"] < 1.0
+    assert (tmp_path / "head.blend").stat().st_size > 100_000
+
+
+def test_bad_input_in_a_blender_binary_exits_2_with_one_line(tmp_path):
+    proc = _run("adapt", "--scan", str(tmp_path / "missing.ply"), "--landmarks", str(SAMPLE_DIR / "landmarks.json"),
+                "--out", str(tmp_path / "o"), cwd=tmp_path)
+    assert proc.returncode == 2
+    assert "missing.ply: no such file" in proc.stderr and "Traceback" not in proc.stderr
