@@ -165,14 +165,13 @@ def build(tpl, parts=None, muscles=None, sphincters=None, jaw_pivot=None):
         mid = np.abs(skin[:, 0]) < 1e-9                       # midline: the bone normal has no sideways part
         closest[mid, 0], bone_fn[mid, 0] = 0.0, 0.0
         bone_fn[mid] /= np.maximum(np.linalg.norm(bone_fn[mid], axis=1, keepdims=True), 1e-12)
-    # the lips sit in front of the teeth opening, not on bone: pushing their tiny triangles along
-    # the opening's edge would fold them
+    # the lips sit in front of the teeth opening, not on bone (the teeth hold them): the bone
+    # plane at the opening's edge is no barrier for them, and pushing their tiny triangles folds them
     lips = np.isin(tpl.region, [tpl.region_names.index(r) for r in ("upper_lip", "lower_lip")])
-    bone_fn[lips] = normals[lips]            # so they are pushed out along their own (smooth) normal
     rest_gap = np.einsum("ij,ij->i", skin - closest, bone_fn)
     jaw = tpl.meta["jaw"]
     return SkinModel(bone_point=closest, bone_normal=bone_fn, on_bone_mandible=on_mandible,
-                     free=~hidden & (rest_gap > 0), clearance=np.minimum(NON_PENETRATION, 0.9 * np.maximum(rest_gap, 0)),
+                     free=~hidden & ~lips & (rest_gap > 0), clearance=np.minimum(NON_PENETRATION, 0.9 * np.maximum(rest_gap, 0)),
                      n=n, rest=rest, solve=solve, bone_k=bone_k, on_mandible=on_mandible, muscles=tm,
                      jaw_pivot=np.asarray(jaw_pivot if jaw_pivot is not None else jaw["pivot"]),
                      jaw_axis=np.asarray(jaw["axis"]))
