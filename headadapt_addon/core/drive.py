@@ -1,0 +1,153 @@
+"""MPEG-4 drive as data: FAPs, expressions and visemes -> skin-model controls and rigid-part motions.
+
+A control is one of core.physics' (muscles, sphincters, jaw, lids, cheek puff, lip push/funnel,
+depressor septi), with an activation; 1 is about the amplitude of the matching ARKit face unit.
+FAPs the skin cannot express move rigid parts instead (eyeballs, tongue) or the whole head
+(head_pitch/yaw/roll: the root object's rotation). Not expressed: pupil dilation (29-30, the
+template's eyes have no pupil geometry), tongue roll (47) and the ears (65-68, no ear muscles).
+The expression and viseme recipes are hand-made from FACS descriptions (Ekman & Friesen) and
+common viseme charts; they are data, edit them here.
+"""
+
+from __future__ import annotations
+
+from . import mpeg4
+
+
+def _lr(recipe_l):
+    """The right side's recipe of a left one (_l <-> _r in every control name)."""
+    swap = {"_l": "_r", "_r": "_l"}
+    return {(k[:-2] + swap[k[-2:]]) if k[-2:] in swap else k: v for k, v in recipe_l.items()}
+
+
+def _both(recipe):
+    """A recipe applied on both sides (every _l control also as _r)."""
+    out = dict(recipe)
+    out.update(_lr(recipe))
+    return out
+
+
+# Low-level FAPs on the skin: {FAP name: {control: activation at key value 1}} (left ones; the
+# right ones are mirrored below). Key value 1 moves the FAP's FDP in the FAP's direction.
+_FAP_SKIN_LEFT = {
+    "open_jaw": {"jaw_open": 1.0},
+    "lower_t_midlip": {"orbicularis_oris": 1.0},
+    "raise_b_midlip": {"mentalis_l": 0.5, "mentalis_r": 0.5},
+    "stretch_l_cornerlip": {"risorius_l": 1.0},
+    "lower_t_lip_lm": {"orbicularis_oris": 0.5},
+    "raise_b_lip_lm": {"mentalis_l": 1.0},
+    "raise_l_cornerlip": {"zygomaticus_major_l": 1.0},
+    "thrust_jaw": {"jaw_thrust": 1.0},
+    "shift_jaw": {"jaw_shift": 1.0},
+    "push_b_lip": {"lip_push_lower": 1.0},
+    "push_t_lip": {"lip_push_upper": 1.0},
+    "depress_chin": {"mentalis_l": 1.0, "mentalis_r": 1.0},
+    "close_t_l_eyelid": {"upper_lid_l": 1.0},
+    "close_b_l_eyelid": {"lower_lid_l": 1.0},
+    "raise_l_i_eyebrow": {"frontalis_inner_l": 1.0},
+    "raise_l_m_eyebrow": {"frontalis_inner_l": 0.5, "frontalis_outer_l": 0.5},
+    "raise_l_o_eyebrow": {"frontalis_outer_l": 1.0},
+    "squeeze_l_eyebrow": {"corrugator_l": 1.0},
+    "puff_l_cheek": {"cheek_puff_l": 1.0},
+    "lift_l_cheek": {"orbicularis_oculi_l": 1.0},
+    "lower_t_midlip_o": {"orbicularis_oris": 1.0},
+    "raise_b_midlip_o": {"mentalis_l": 0.5, "mentalis_r": 0.5},
+    "stretch_l_cornerlip_o": {"risorius_l": 1.0},
+    "lower_t_lip_lm_o": {"orbicularis_oris": 0.5},
+    "raise_b_lip_lm_o": {"mentalis_l": 1.0},
+    "raise_l_cornerlip_o": {"zygomaticus_major_l": 1.0},
+    "stretch_l_nose": {"nasalis_l": 1.0},
+    "raise_nose": {"levator_labii_superioris_l": 0.5, "levator_labii_superioris_r": 0.5},
+    "bend_nose": {"nasalis_r": 1.0},
+}
+
+
+def _mirror_name(name):
+    return name.replace("_l_", "_#_").replace("_r_", "_l_").replace("_#_", "_r_").replace("_lm", "_#m") \
+        .replace("_rm", "_lm").replace("_#m", "_rm")
+
+
+FAP_SKIN = {}
+for _name, _recipe in _FAP_SKIN_LEFT.items():
+    FAP_SKIN[_name] = _recipe
+    _other = _mirror_name(_name)
+    if _other != _name and _other in mpeg4.FAP_BY_NAME:
+        FAP_SKIN[_other] = _lr(_recipe)
+
+# FAPs that move a rigid part: {FAP name: (part, kind, axis or direction, amount at key value 1)}.
+# Rotations in radians about an axis through the part's centre (Blender frame), slides in metres.
+FAP_RIGID = {
+    "yaw_l_eyeball": ("eye_l", "rotate", (0.0, 0.0, 1.0), 0.5),
+    "yaw_r_eyeball": ("eye_r", "rotate", (0.0, 0.0, 1.0), 0.5),
+    "pitch_l_eyeball": ("eye_l", "rotate", (1.0, 0.0, 0.0), 0.5),
+    "pitch_r_eyeball": ("eye_r", "rotate", (1.0, 0.0, 0.0), 0.5),
+    "thrust_l_eyeball": ("eye_l", "slide", (0.0, -1.0, 0.0), 0.005),
+    "thrust_r_eyeball": ("eye_r", "slide", (0.0, -1.0, 0.0), 0.005),
+    "shift_tongue_tip": ("tongue", "slide", (-1.0, 0.0, 0.0), 0.01),
+    "raise_tongue_tip": ("tongue", "slide", (0.0, 0.0, 1.0), 0.008),
+    "thrust_tongue_tip": ("tongue", "slide", (0.0, -1.0, 0.0), 0.01),
+    "raise_tongue": ("tongue", "slide", (0.0, 0.0, 1.0), 0.008),
+}
+# The head rotation FAPs turn the whole head about 7.1: (axis, Blender rotation channel).
+FAP_HEAD = {"head_pitch": (0, "x"), "head_yaw": (2, "z"), "head_roll": (1, "y")}
+NOT_EXPRESSED = ("dilate_l_pupil", "dilate_r_pupil", "tongue_roll", "raise_l_ear", "raise_r_ear",
+                 "pull_l_ear", "pull_r_ear")
+
+# The six expressions (FAP 2) at full intensity.
+EXPRESSION_RECIPES = {
+    "joy": _both({"zygomaticus_major_l": 0.8, "orbicularis_oculi_l": 0.4, "risorius_l": 0.2}) | {"jaw_open": 0.08},
+    "sadness": _both({"frontalis_inner_l": 0.7, "corrugator_l": 0.4, "depressor_anguli_oris_l": 0.8,
+                      "upper_lid_l": 0.15}) | {"mentalis_l": 0.3, "mentalis_r": 0.3},
+    "anger": _both({"corrugator_l": 0.9, "levator_labii_superioris_l": 0.3, "upper_lid_l": -0.1,
+                    "depressor_anguli_oris_l": 0.2}) | {"orbicularis_oris": 0.6},
+    "fear": _both({"frontalis_inner_l": 0.8, "frontalis_outer_l": 0.4, "corrugator_l": 0.3, "risorius_l": 0.6,
+                   "upper_lid_l": -0.2}) | {"jaw_open": 0.2},
+    "disgust": _both({"levator_labii_superioris_l": 0.9, "nasalis_l": 0.4, "corrugator_l": 0.3,
+                      "depressor_anguli_oris_l": 0.3, "orbicularis_oculi_l": 0.3}),
+    "surprise": _both({"frontalis_inner_l": 0.9, "frontalis_outer_l": 0.9, "upper_lid_l": -0.25}) | {"jaw_open": 0.45},
+}
+
+# The fourteen visemes (FAP 1), by their names in mpeg4.VISEMES.
+VISEME_RECIPES = {
+    "p_b_m": {"orbicularis_oris": 0.6, "mentalis_l": 0.2, "mentalis_r": 0.2},
+    "f_v": {"jaw_open": 0.1, "mentalis_l": 0.6, "mentalis_r": 0.6, "levator_labii_superioris_l": 0.2,
+            "levator_labii_superioris_r": 0.2},
+    "T_D": {"jaw_open": 0.2, "risorius_l": 0.1, "risorius_r": 0.1},
+    "t_d": {"jaw_open": 0.15, "risorius_l": 0.2, "risorius_r": 0.2},
+    "k_g": {"jaw_open": 0.25, "risorius_l": 0.15, "risorius_r": 0.15},
+    "tS_dZ_S": {"jaw_open": 0.15, "lip_funnel": 0.5, "lip_push_upper": 0.5, "lip_push_lower": 0.5},
+    "s_z": {"jaw_open": 0.08, "risorius_l": 0.4, "risorius_r": 0.4},
+    "n_l": {"jaw_open": 0.2, "risorius_l": 0.1, "risorius_r": 0.1},
+    "r": {"jaw_open": 0.15, "lip_funnel": 0.3, "orbicularis_oris": 0.3},
+    "A": {"jaw_open": 0.6},
+    "e": {"jaw_open": 0.35, "risorius_l": 0.4, "risorius_r": 0.4},
+    "I": {"jaw_open": 0.2, "risorius_l": 0.5, "risorius_r": 0.5, "zygomaticus_major_l": 0.2,
+          "zygomaticus_major_r": 0.2},
+    "Q": {"jaw_open": 0.4, "lip_funnel": 0.6, "orbicularis_oris": 0.3},
+    "U": {"jaw_open": 0.15, "orbicularis_oris": 0.7, "lip_push_upper": 0.6, "lip_push_lower": 0.6},
+}
+
+# ARKit face units (faceunits01) -> the controls whose activations the benchmark fits to them.
+ARKIT_CONTROLS = {
+    "jawOpen": ("jaw_open",),
+    "mouthSmileLeft": ("zygomaticus_major_l", "risorius_l", "zygomaticus_minor_l"),
+    "mouthSmileRight": ("zygomaticus_major_r", "risorius_r", "zygomaticus_minor_r"),
+    "browInnerUp": ("frontalis_inner_l", "frontalis_inner_r"),
+    "browOuterUpLeft": ("frontalis_outer_l",),
+    "browOuterUpRight": ("frontalis_outer_r",),
+    "eyeBlinkLeft": ("upper_lid_l", "lower_lid_l", "orbicularis_oculi_l"),
+    "eyeBlinkRight": ("upper_lid_r", "lower_lid_r", "orbicularis_oculi_r"),
+    "mouthPucker": ("orbicularis_oris", "lip_push_upper", "lip_push_lower"),
+    "mouthFunnel": ("orbicularis_oris", "lip_funnel", "lip_push_upper", "lip_push_lower", "jaw_open",
+                    "depressor_septi"),
+    "cheekPuff": ("cheek_puff_l", "cheek_puff_r"),
+}
+
+
+def shape_key_recipes():
+    """Every bakeable key: [(key name, kind "expression"/"viseme"/"fap", {control: activation})]."""
+    keys = [(name, "expression", EXPRESSION_RECIPES[name]) for name in mpeg4.EXPRESSIONS]
+    keys += [(f"viseme_{name}", "viseme", VISEME_RECIPES[name]) for _, (name, _) in sorted(mpeg4.VISEMES.items())
+             if name != "none"]
+    keys += [(fap.name, "fap", FAP_SKIN[fap.name]) for fap in mpeg4.FAPS.values() if fap.name in FAP_SKIN]
+    return keys
