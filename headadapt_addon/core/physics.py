@@ -41,6 +41,7 @@ LID_REACH = 2.0                       # the lid's turn fades to 0 at this many m
 LID_STIFFNESS = 5.0                   # lid skin on its tarsal plate
 MUSCLE_CONE_DEG = 15.0               # Waters' angular fall-off: zero at this angle off the muscle axis
 MUSCLE_BAND = 0.15                    # radial fall-off: zero this fraction of the length from the insertion
+MUSCLE_MIN_REACH = 0.008              # short muscles still spread their pull this far (m)
 PUFF_REGIONS = ("cheek_l", "mouth_interior")
 PUFF_FORWARD = 3.0
 FUNNEL_FORWARD = 1.0
@@ -58,7 +59,7 @@ STRENGTH = {
     "risorius": 0.6, "depressor_anguli_oris": 0.8, "depressor_labii_inferioris": 0.8,
     "mentalis": 1.5, "buccinator": 0.6, "nasalis": 0.4,
     "orbicularis_oris": 0.8, "orbicularis_oculi": 0.6,
-    "cheek_puff": 0.8, "lip_push": 0.5, "lip_funnel": 0.5, "depressor_septi": 0.2,
+    "cheek_puff": 0.8, "lip_push": 0.5, "lip_funnel": 0.6, "depressor_septi": 1.0,
 }
 JAW_OPEN_DEG = 25.0                   # jaw_open = 1: a wide-open mouth (ARKit jawOpen turns about 30 deg)
 JAW_SLIDE = 0.006                     # jaw_thrust / jaw_shift = 1, m
@@ -77,6 +78,7 @@ class SkinModel:
     n: int
     rest: np.ndarray
     solve: object
+    matrix: object                # the (3n,3n) sparse stiffness the solve factorised
     forces: dict                  # control -> (dof index (k,), force (k,3) at activation 1)
     bone_k: np.ndarray            # (n,) hypodermis-to-bone stiffness
     on_mandible: np.ndarray       # (n,) hypodermis vertex rides on the mandible
@@ -255,7 +257,8 @@ def build(tpl, anatomy=None):
     lids = _lid_controls(tpl, skin, parts, fdps, n)
     for idx_l, k_l, *_ in lids.values():
         np.add.at(anchor, idx_l, k_l)
-    lu = splu((A + sparse.diags(anchor)).tocsc())
+    matrix = (A + sparse.diags(anchor)).tocsc()
+    lu = splu(matrix)
 
     def solve(f):
         return np.column_stack([lu.solve(np.ascontiguousarray(f[:, d])) for d in range(3)])
@@ -272,7 +275,7 @@ def build(tpl, anatomy=None):
     adj = sparse.coo_matrix((np.ones(2 * len(e)), (np.r_[e[:, 0], e[:, 1]], np.r_[e[:, 1], e[:, 0]])), shape=(n, n)).tocsr()
     adj = sparse.diags(1.0 / np.maximum(np.asarray(adj.sum(axis=1)).ravel(), 1)) @ adj
     return SkinModel(tris=tris, rest_tri_normal=tri_n, tri_ok=np.linalg.norm(tri_n, axis=1) > 1e-14, adjacency=adj,
-                     n=n, rest=rest, solve=solve, forces=forces, bone_k=bone_k, on_mandible=on_mandible,
+                     n=n, rest=rest, solve=solve, matrix=matrix, forces=forces, bone_k=bone_k, on_mandible=on_mandible,
                      jaw_pivot=np.asarray(jaw_pivot, dtype=float), jaw_axis=np.asarray(jaw["axis"]), lids=lids,
                      bone_point=closest, bone_normal=bone_fn, on_bone_mandible=on_mandible,
                      free=~hidden & ~lips & (rest_gap > 0),
@@ -291,9 +294,9 @@ def _muscle_forces(tpl, rest, normals, n, muscles, sphincters):
         rel = hyp - a_pt
         dist = np.linalg.norm(rel, axis=1)
         cosang = rel @ axis / np.maximum(dist * length, 1e-12)
-        cone = np.cos(np.radians(MUSCLE_CONE_DEG))
+        cone = np.cos(max(np.radians(MUSCLE_CONE_DEG), np.arctan2(MUSCLE_MIN_REACH, length)))
         angular = np.clip((cosang - cone) / (1 - cone), 0, 1)
-        radial = np.clip(1 - np.abs(dist - length) / (MUSCLE_BAND * length), 0, 1)
+        radial = np.clip(1 - np.abs(dist - length) / max(MUSCLE_BAND * length, MUSCLE_MIN_REACH), 0, 1)
         w = angular * radial * inside
         direction = -rel                                             # toward the attachment, along the skin
         direction -= np.einsum("ij,ij->i", direction, normals)[:, None] * normals

@@ -1,0 +1,83 @@
+"""Bake expressions, visemes and FAPs into per-part vertex positions (shape keys), no bpy.
+
+Skin keys come from the skin model's equilibrium for the key's recipe (core.drive); the
+mandible, lower teeth and tongue follow the jaw controls; eyes and tongue take the rigid FAPs.
+Each FAP key records how many FAP units (in the head's FAPUs) its value 1 stands for, so a .fap
+file's values turn into key values. Template or adapted-head frame, metres.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from . import drive, mpeg4, physics
+
+JAW_FOLLOWERS = ("mandible", "teeth_lower", "tongue")
+
+
+@dataclasses.dataclass
+class BakedKey:
+    """One shape key: its name, kind, {part: (n,3) positions} of the parts it moves, FAP units at 1."""
+    name: str
+    kind: str
+    moved: dict
+    fap_units: float | None = None
+
+
+def _surface(verts, tris, ref):
+    return np.asarray(ref["bary"]) @ verts[tris[ref["face"]]]
+
+
+def _fap_units(fap, tpl, parts, moved, fapus):
+    """FAP units (of the FAP's FAPU) that a key at value 1 moves its FDP along the FAP's direction."""
+    ref = tpl.meta["fdps"].get(fap.fdp)
+    if ref is None or fap.direction is None or ref["part"] not in moved:
+        return None
+    tris = tpl.parts[ref["part"]].tris
+    d = _surface(moved[ref["part"]], tris, ref) - _surface(parts[ref["part"]], tris, ref)
+    return float(d @ np.asarray(fap.direction) / fapus[fap.unit])
+
+
+def bake(tpl, anatomy=None, kinds=("expression", "viseme", "fap"), progress=None):
+    """Baked keys [BakedKey] for the template or an adapted Anatomy, and timings {build_s, per_key_s}."""
+    t0 = time.perf_counter()
+    model = physics.build(tpl, anatomy)
+    build_s = time.perf_counter() - t0
+    parts = anatomy.parts if anatomy is not None else {k: p.verts for k, p in tpl.parts.items()}
+    fapus = anatomy.fapus if anatomy is not None else tpl.meta["fapus"]
+    jobs = [r for r in drive.shape_key_recipes() if r[1] in kinds]
+    if "fap" in kinds:
+        jobs += [(name, "fap_rigid", spec) for name, spec in drive.FAP_RIGID.items()]
+    keys = []
+    t1 = time.perf_counter()
+    for i, (name, kind, recipe) in enumerate(jobs):
+        if kind == "fap_rigid":
+            part, how, axis, amount = recipe
+            v = parts[part]
+            centre = v.mean(axis=0)
+            if how == "rotate":
+                rot = Rotation.from_rotvec(amount * np.asarray(axis)).as_matrix()
+                moved = {part: (v - centre) @ rot.T + centre}
+            else:
+                moved = {part: v + amount * np.asarray(axis)}
+            fap = mpeg4.FAP_BY_NAME[name]
+            units = (amount / 1e-5) if how == "rotate" else _fap_units(fap, tpl, parts, moved, fapus)
+            keys.append(BakedKey(name, "fap", moved, units))
+        else:
+            moved = {"skin": model.equilibrium(recipe)}
+            if recipe.keys() & {"jaw_open", "jaw_thrust", "jaw_shift"}:
+                rot, t = model.mandible_transform(recipe)
+                for part in JAW_FOLLOWERS:
+                    moved[part] = (parts[part] - model.jaw_pivot) @ rot.T + model.jaw_pivot + t
+            units = None
+            if kind == "fap":
+                units = _fap_units(mpeg4.FAP_BY_NAME[name], tpl, parts, moved, fapus)
+            keys.append(BakedKey(name, kind, moved, units))
+        if progress:
+            progress((i + 1) / len(jobs), name)
+    per_key = (time.perf_counter() - t1) / max(len(jobs), 1)
+    return keys, {"build_s": build_s, "per_key_s": per_key, "keys": len(keys), "model": model}
