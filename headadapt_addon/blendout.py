@@ -70,19 +70,32 @@ def build_result_objects(tpl, result, target_scene, scan_matrix=None):
     return root
 
 
-def build_result_scene(tpl, result, scan_verts, scan_tris, landmarks, report, scan_name="scan"):
-    """Add the scan (with its landmarks) and the adapted template to the current scene; return the root."""
+def bake_result(tpl, root, kinds=("expression", "viseme", "fap")):
+    """Bake expressions/visemes/FAPs of a head hierarchy to shape keys plus the preview action; timings."""
+    from . import animation
+    from .core import bake
+    keys, timing = bake.bake(tpl, animation.anatomy_from_objects(tpl, root), kinds=kinds)
+    animation.write_shape_keys(root, keys)
+    if "expression" in kinds:
+        animation.preview_action(root)
+    return {"keys": len(keys), "build_s": timing["build_s"], "per_key_s": timing["per_key_s"]}
+
+
+def build_result_scene(tpl, result, scan_verts, scan_tris, landmarks, report, scan_name="scan", bake=True):
+    """Add the scan (with its landmarks), the adapted template and (bake) its shape keys; return the root."""
     scan_obj = bpy.data.objects.new(scan_name, bridge.new_mesh(scan_name, scan_verts, scan_tris))
     bpy.context.scene.collection.objects.link(scan_obj)
     scan_obj["headadapt_landmarks"] = json.dumps({k: [float(c) for c in v] for k, v in landmarks.items()})
     root = build_result_objects(tpl, result, bpy.context.scene)
+    if bake:
+        report = dict(report, bake=bake_result(tpl, root))
     text = bpy.data.texts.new("HeadAdapt report")
     text.write(json.dumps(report, indent=1, default=float))
     root["headadapt_report"] = json.dumps(report, default=float)
     return root
 
 
-def write_blend(path, tpl, result, scan_verts, scan_tris, landmarks, report):
+def write_blend(path, tpl, result, scan_verts, scan_tris, landmarks, report, bake=True):
     """Write a fresh .blend with the scan and the adapted head, atomically (temp file, then rename)."""
     path = pathlib.Path(path)
     try:
@@ -93,7 +106,7 @@ def write_blend(path, tpl, result, scan_verts, scan_tris, landmarks, report):
         raise FileFormatError(f"cannot write {path}: {exc.strerror or exc}") from exc
     try:
         bpy.ops.wm.read_homefile(use_empty=True, use_factory_startup=True)
-        build_result_scene(tpl, result, scan_verts, scan_tris, landmarks, report)
+        build_result_scene(tpl, result, scan_verts, scan_tris, landmarks, report, bake=bake)
         bpy.ops.wm.save_as_mainfile(filepath=tmp, copy=True, compress=True)
         os.chmod(tmp, 0o644)
         os.replace(tmp, path)

@@ -292,7 +292,80 @@ class HEADADAPT_OT_adapt(_Base, bpy.types.Operator):
         return {"FINISHED"}
 
 
-classes = (HEADADAPT_OT_add_template, HEADADAPT_OT_use_active_as_scan, HEADADAPT_OT_import_landmarks,
+def head_root(context):
+    """The head expressions act on: the adaptation result if there is one, else the template."""
+    s = settings(context)
+    return s.result_root or s.template_root
+
+
+class HEADADAPT_OT_bake_expressions(_Base, bpy.types.Operator):
+    """Simulate the skin for the chosen sets and bake them to shape keys, with a preview action"""
+    bl_idname = "headadapt.bake_expressions"
+    bl_label = "Bake Expressions"
+    sets: bpy.props.EnumProperty(
+        name="Sets", options={"ENUM_FLAG"}, default={"expression", "viseme", "fap"},
+        items=[("expression", "Expressions", "joy, sadness, anger, fear, disgust, surprise"),
+               ("viseme", "Visemes", "the 14 MPEG-4 visemes"),
+               ("fap", "FAPs", "one key per low-level FAP the anatomy can express")])
+    preview: bpy.props.BoolProperty(name="Preview action", default=True,
+                                    description="Keyframe the six expressions one after another")
+
+    @classmethod
+    def poll(cls, context):
+        return head_root(context) is not None
+
+    def execute(self, context):
+        from . import animation
+        from .core import bake
+        root = head_root(context)
+        if root is None:
+            return self.fail("no head: add the template or adapt first")
+        if not self.sets:
+            return self.fail("choose at least one set to bake")
+        wm = context.window_manager
+        wm.progress_begin(0, 100)
+        try:
+            ana = animation.anatomy_from_objects(template(), root)
+            keys, timing = bake.bake(template(), ana, kinds=tuple(self.sets),
+                                     progress=lambda f, _name: wm.progress_update(int(100 * f)))
+        except HeadAdaptError as exc:
+            return self.fail(str(exc))
+        finally:
+            wm.progress_end()
+        animation.write_shape_keys(root, keys)
+        if self.preview and "expression" in self.sets:
+            animation.preview_action(root)
+        self.report({"INFO"}, f"baked {len(keys)} shape keys on {root.name!r} "
+                              f"({timing['per_key_s'] * 1000:.0f} ms per key)")
+        return {"FINISHED"}
+
+
+class HEADADAPT_OT_import_fap(_Base, ImportHelper, bpy.types.Operator):
+    """Keyframe an MPEG-4 .fap animation on the baked shape keys"""
+    bl_idname = "headadapt.import_fap"
+    bl_label = "Import .fap"
+    filename_ext = ".fap"
+    filter_glob: bpy.props.StringProperty(default="*.fap", options={"HIDDEN"})
+
+    @classmethod
+    def poll(cls, context):
+        return head_root(context) is not None
+
+    def execute(self, context):
+        from . import animation
+        from .core.fapfile import read_fap
+        root = head_root(context)
+        try:
+            anim = read_fap(self.filepath)
+            counts = animation.import_fap(root, anim)
+        except HeadAdaptError as exc:
+            return self.fail(str(exc))
+        self.report({"INFO"}, f"{pathlib.Path(self.filepath).name}: {len(anim.frames)} frames at {anim.fps:g} fps; "
+                              + ", ".join(f"{v} {k}" for k, v in counts.items()))
+        return {"FINISHED"}
+
+
+classes = (HEADADAPT_OT_bake_expressions, HEADADAPT_OT_import_fap, HEADADAPT_OT_add_template, HEADADAPT_OT_use_active_as_scan, HEADADAPT_OT_import_landmarks,
            HEADADAPT_OT_export_landmarks, HEADADAPT_OT_clear_landmark, HEADADAPT_OT_suggest_landmarks,
            HEADADAPT_OT_accept_suggestions, HEADADAPT_OT_calibrate, HEADADAPT_OT_adapt)
 

@@ -97,7 +97,17 @@ def draw_anatomy(layout, context):
 
 
 def draw_expressions(layout, context):
-    layout.label(text="Expression baking: not available yet", icon="INFO")
+    s = _settings(context)
+    root = s.result_root or s.template_root
+    if root is None:
+        layout.label(text="Add the template or adapt first", icon="INFO")
+    else:
+        skin = next((o for o in root.children_recursive if o.get("headadapt_part") == "skin"), None)
+        baked = len(json.loads(skin.get("headadapt_keys", "{}"))) if skin else 0
+        layout.label(text=f"{root.name}: {baked} baked keys" if baked else f"{root.name}: not baked yet",
+                     icon="CHECKMARK" if baked else "INFO")
+    layout.operator("headadapt.bake_expressions")
+    layout.operator("headadapt.import_fap", icon="IMPORT")
 
 
 def draw_report(layout, context):

