@@ -58,7 +58,7 @@ def write_shape_keys(root, keys):
     for key in keys:
         for part, verts in key.moved.items():
             block = bridge.add_shape_key(objs[part], key.name, verts - (pivot if part in JAW_CHILDREN else 0.0))
-            block.slider_min = -1.0
+            block.slider_min, block.slider_max = -1.0, 3.0
     info = json.loads(objs["skin"].get("headadapt_keys", "{}"))
     info.update({k.name: {"kind": k.kind, "parts": sorted(k.moved), "fap_units": k.fap_units} for k in keys})
     objs["skin"]["headadapt_keys"] = json.dumps(info)
