@@ -1,15 +1,16 @@
 """MPEG-4 FAP files (.fap): read and write, values in FAPUs, no bpy.
 
 Format: a header `2.1 <name> <frame rate> <frames>`, then per frame a mask line of 68 bits and a
-data line `frame value ...` with the values of the masked-in FAPs in order. FAP 1 (viseme) takes
-4 values (select1, select2, blend, def) and FAP 2 (expression) 6 (select1, intensity1, select2,
-intensity2, init_face, def) in the reference files; files that give one value for each are read
-too (select1, and intensity 63 for an expression).
+data line `frame value ...` with the values of the masked-in FAPs in FAP order. In the reference
+files FAP 1 (viseme) takes 4 values (select1, select2, blend, def) and FAP 2 (expression) 6
+(select1, intensity1, select2, intensity2, init_face, def); files that give one value for each
+are read too (decided per line by counting). Errors name the file and the line; writes are atomic.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import math
 import pathlib
 
 import numpy as np
@@ -18,11 +19,16 @@ from . import mpeg4
 from .exceptions import FileFormatError, HeadAdaptError
 from .meshio import write_atomic
 
+N = mpeg4.N_FAPS                                              # 68
+# The rest of the compound vector when a file gives FAP 1 / FAP 2 as one value (the select1):
+# viseme 2 = none with blend 63 (all viseme 1); expression at intensity 63, second one neutral.
+_ONE_VALUE_REST = {1: (0.0, 63.0, 0.0), 2: (63.0, 0.0, 0.0, 0.0, 0.0)}
+
 
 @dataclasses.dataclass
 class FapAnimation:
-    """A FAP stream: name, fps, frame numbers (F,), values (F,69) by FAP number (NaN = not given),
-    visemes (F,4) and expressions (F,6) (NaN rows where FAP 1 / 2 are not given)."""
+    """A FAP stream: name, fps, frame numbers (F,), values (F,69) in FAPUs by FAP number (NaN = not
+    given, column 0 unused), visemes (F,4) and expressions (F,6) (NaN rows where FAP 1 / 2 are not given)."""
     name: str
     fps: float
     frames: np.ndarray
@@ -32,89 +38,114 @@ class FapAnimation:
 
     @property
     def duration_s(self):
-        """Length of the stream in seconds."""
-        return len(self.frames) / self.fps
+        """Length in seconds, from the first to the end of the last frame number."""
+        return float(self.frames[-1] - self.frames[0] + 1) / self.fps if len(self.frames) else 0.0
 
 
-def _numbers(tokens, path, line_no):
+def _error(path, line_no, what):
+    return FileFormatError(f"{path}, line {line_no}: {what}")
+
+
+def _number(tok, path, line_no):
     try:
-        return [float(t) for t in tokens]
+        value = float(tok)
     except ValueError:
-        raise FileFormatError(f"{path}, line {line_no}: not a number in {' '.join(tokens)!r}") from None
+        value = math.nan
+    if not math.isfinite(value):
+        raise _error(path, line_no, f"{tok!r} is not a number")
+    return value
 
 
 def read_fap(path):
-    """Read a .fap file into a FapAnimation; FileFormatError names the file and line."""
+    """Read a .fap file into a FapAnimation (values in FAPUs); FileFormatError names the file and line."""
     path = pathlib.Path(path)
     try:
         text = path.read_text(errors="replace")
     except OSError as exc:
         raise FileFormatError(f"cannot read {path}: {exc.strerror or exc}") from exc
-    lines = [(i + 1, ln.split()) for i, ln in enumerate(text.splitlines()) if ln.strip() and not ln.lstrip().startswith("#")]
-    if not lines or len(lines[0][1]) < 4:
-        raise FileFormatError(f"{path}, line 1: expected the header '2.1 <name> <frame rate> <frames>'")
-    _, head = lines[0]
-    fps, n_frames = _numbers(head[-2:], path, lines[0][0])
+    lines = [(no, ln.split()) for no, ln in enumerate(text.splitlines(), 1) if ln.strip() and not ln.lstrip().startswith("#")]
+    head_no, head = lines[0] if lines else (1, [])
+    if len(head) < 4:
+        raise _error(path, head_no, f"bad header {' '.join(head)!r}, expected '2.1 <name> <frame rate> <frames>'")
+    _number(head[0], path, head_no)
+    fps, n_frames = _number(head[-2], path, head_no), _number(head[-1], path, head_no)
     if fps <= 0:
-        raise FileFormatError(f"{path}, line {lines[0][0]}: frame rate {fps:g} must be positive")
-    body = lines[1:]
-    if len(body) < 2 * int(n_frames):
-        raise FileFormatError(f"{path}: the header says {int(n_frames)} frames, the file holds {len(body) // 2}")
-    frames, values, visemes, expressions = [], [], [], []
-    for f in range(int(n_frames)):
+        raise _error(path, head_no, f"frame rate {fps:g} must be positive")
+    if n_frames < 0 or not n_frames.is_integer():
+        raise _error(path, head_no, f"number of frames {head[-1]!r} is not a whole number >= 0")
+    n, body = int(n_frames), lines[1:]
+    frames, values = np.zeros(n, np.int64), np.full((n, N + 1), np.nan)
+    visemes, expressions = np.full((n, 4), np.nan), np.full((n, 6), np.nan)
+    for f in range(min(n, len(body) // 2)):
         (mask_no, mask), (data_no, data) = body[2 * f], body[2 * f + 1]
-        if len(mask) != 68 or any(b not in ("0", "1") for b in mask):
-            raise FileFormatError(f"{path}, line {mask_no}: a mask must be 68 bits of 0 or 1, got {len(mask)} tokens")
+        if len(mask) != N:
+            raise _error(path, mask_no, f"the mask of frame {f + 1} has {len(mask)} entries, expected {N} bits")
+        bad = [t for t in mask if t not in ("0", "1")]
+        if bad:
+            raise _error(path, mask_no, f"mask entry {bad[0]!r} is not 0 or 1")
         bits = np.array(mask) == "1"
-        nums = _numbers(data, path, data_no)
-        k = int(bits.sum())
-        compound = k + 3 * bits[0] + 5 * bits[1]
-        if len(nums) - 1 not in (k, compound):
-            raise FileFormatError(f"{path}, line {data_no}: {len(nums) - 1} values for {k} FAPs in the mask")
-        row, vis, exp = np.full(mpeg4.N_FAPS + 1, np.nan), np.full(4, np.nan), np.full(6, np.nan)
-        vals = iter(nums[1:])
-        wide = len(nums) - 1 == compound and compound != k
-        for number in np.flatnonzero(bits) + 1:
-            if number == 1:
-                vis[:] = [next(vals) for _ in range(4)] if wide else [next(vals), np.nan, 63.0, np.nan]
-                row[1] = vis[0]
-            elif number == 2:
-                exp[:] = [next(vals) for _ in range(6)] if wide else [next(vals), 63.0, np.nan, np.nan, np.nan, np.nan]
-                row[2] = exp[0]
-            else:
-                row[number] = next(vals)
-        frames.append(int(nums[0]))
-        values.append(row), visemes.append(vis), expressions.append(exp)
-    return FapAnimation(" ".join(head[1:-2]), fps, np.array(frames), np.array(values).reshape(-1, mpeg4.N_FAPS + 1),
-                        np.array(visemes).reshape(-1, 4), np.array(expressions).reshape(-1, 6))
+        nums = [_number(t, path, data_no) for t in data]
+        if not nums[0].is_integer():
+            raise _error(path, data_no, f"frame number {data[0]!r} is not a whole number")
+        k, got = int(bits.sum()), len(nums) - 1
+        full = k + 3 * bits[0] + 5 * bits[1]
+        if got not in (k, full):
+            raise _error(path, data_no, f"{got} values for {k} FAPs in the mask, expected {k}"
+                         + (f" or {full} (FAP 1/2 with 4/6 values)" if full != k else ""))
+        wide, vals, pos = got == full and full != k, nums[1:], 0
+        for fap, out in ((1, visemes), (2, expressions)):
+            if bits[fap - 1]:
+                width = out.shape[1] if wide else 1
+                out[f] = vals[pos:pos + width] if wide else (vals[pos], *_ONE_VALUE_REST[fap])
+                values[f, fap], pos = vals[pos], pos + width
+        values[f, np.flatnonzero(bits[2:]) + 3] = vals[pos:]
+        frames[f] = int(nums[0])
+    if len(body) < 2 * n:
+        raise FileFormatError(f"{path}: the header (line {head_no}) says {n} frames, the file holds only {len(body) // 2}")
+    if len(body) > 2 * n:
+        raise _error(path, body[2 * n][0], f"more lines than the header's {n} frames")
+    return FapAnimation(" ".join(head[1:-2]), fps, frames, values, visemes, expressions)
 
 
 def _fmt(v):
-    return str(int(v)) if float(v).is_integer() else f"{v:.6g}"
+    """A value as text: an integer when integral, else up to 6 decimals."""
+    v = float(v)
+    if v.is_integer():
+        return str(int(v))
+    text = f"{v:.6f}".rstrip("0").rstrip(".")
+    return "0" if text in ("-0", "") else text
 
 
 def write_fap(path, anim):
-    """Write a FapAnimation as a .fap file (compound FAP 1/2 layout), atomically."""
-    out = [f"2.1 {anim.name or 'headadapt'} {_fmt(anim.fps)} {len(anim.frames)}"]
+    """Write a FapAnimation as a .fap file (values in FAPUs, FAP 1/2 in the 4/6-value layout), atomically."""
+    n = len(anim.frames)
+    values, vis, exp = (np.asarray(a, np.float64) for a in (anim.values, anim.visemes, anim.expressions))
+    if values.shape != (n, N + 1) or vis.shape != (n, 4) or exp.shape != (n, 6) or not anim.fps > 0:
+        raise HeadAdaptError(f"FAP animation {anim.name!r}: expected {n} frames of values (69), visemes (4), "
+                             f"expressions (6) and fps > 0, got {values.shape}, {vis.shape}, {exp.shape}, fps {anim.fps}")
+    if np.isinf(values).any() or np.isinf(vis).any() or np.isinf(exp).any():
+        raise HeadAdaptError(f"FAP animation {anim.name!r} holds infinite values")
+    out = [f"2.1 {' '.join(str(anim.name).split()) or 'headadapt'} {_fmt(anim.fps)} {n}"]
     for i, frame in enumerate(anim.frames):
-        given = ~np.isnan(anim.values[i, 1:])
-        given[0] |= ~np.isnan(anim.visemes[i, 0])
-        given[1] |= ~np.isnan(anim.expressions[i, 0])
-        vals = []
-        for number in np.flatnonzero(given) + 1:
-            src = anim.visemes[i] if number == 1 else anim.expressions[i] if number == 2 else [anim.values[i, number]]
-            vals += [_fmt(0 if np.isnan(v) else v) for v in src]
+        given = ~np.isnan(values[i, 1:])
+        groups = []
+        for fap, row in ((1, vis[i]), (2, exp[i])):
+            select = row[0] if not np.isnan(row[0]) else values[i, fap]
+            given[fap - 1] = not np.isnan(select)
+            defaults = np.array((select, *_ONE_VALUE_REST[fap]))
+            groups.append(np.where(np.isnan(row), defaults, row) if given[fap - 1] else [])
+        rest = values[i, np.flatnonzero(given[2:]) + 3]
         out.append(" ".join("1" if g else "0" for g in given))
-        out.append(" ".join([str(int(frame))] + vals))
+        out.append(" ".join([str(int(frame))] + [_fmt(v) for v in (*groups[0], *groups[1], *rest)]))
     write_atomic(path, "\n".join(out) + "\n")
 
 
 def fap_column(anim, fap):
-    """Values (F,) of one FAP (by number or name) in FAPUs, NaN where not given."""
+    """Values (F,) in FAPUs of one FAP, by number (1..68) or name, NaN where not given."""
     if isinstance(fap, str):
         if fap not in mpeg4.FAP_BY_NAME:
             raise HeadAdaptError(f"unknown FAP name {fap!r}")
         fap = mpeg4.FAP_BY_NAME[fap].number
-    if not 1 <= int(fap) <= mpeg4.N_FAPS:
-        raise HeadAdaptError(f"FAP number {fap} is not 1..{mpeg4.N_FAPS}")
-    return anim.values[:, int(fap)]
+    elif fap not in mpeg4.FAPS:
+        raise HeadAdaptError(f"FAP number {fap} is not one of 1..{N}")
+    return anim.values[:, int(fap)].copy()
