@@ -8,6 +8,7 @@ import numpy as np
 
 from . import bridge, scene
 from .core import mpeg4
+from .core.drive import FAP_HEAD
 from .core.anatomy import Anatomy
 from .core.exceptions import HeadAdaptError
 
@@ -144,7 +145,6 @@ def import_fap(root, anim, start=1):
         if fap.name in info and info[fap.name].get("fap_units"):
             keyframe_key(root, fap.name, frames[given], col[given] / info[fap.name]["fap_units"])
             counts["faps"] += 1
-    from .core.drive import FAP_HEAD
     for name, (axis, _) in FAP_HEAD.items():
         col = anim.values[:, mpeg4.FAP_BY_NAME[name].number]
         given = ~np.isnan(col)

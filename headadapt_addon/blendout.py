@@ -70,13 +70,13 @@ def build_result_objects(tpl, result, target_scene, scan_matrix=None):
     return root
 
 
-def bake_result(tpl, root, kinds=("expression", "viseme", "fap")):
-    """Bake expressions/visemes/FAPs of a head hierarchy to shape keys plus the preview action; timings."""
+def bake_result(tpl, root, kinds=("expression", "viseme", "fap"), preview=True, progress=None):
+    """Bake expressions/visemes/FAPs of a head hierarchy to shape keys (+ the preview action); timings."""
     from . import animation
     from .core import bake
-    keys, timing = bake.bake(tpl, animation.anatomy_from_objects(tpl, root), kinds=kinds)
+    keys, timing = bake.bake(tpl, animation.anatomy_from_objects(tpl, root), kinds=kinds, progress=progress)
     animation.write_shape_keys(root, keys)
-    if "expression" in kinds:
+    if preview and "expression" in kinds:
         animation.preview_action(root)
     return {"keys": len(keys), "build_s": timing["build_s"], "per_key_s": timing["per_key_s"]}
 

@@ -49,6 +49,11 @@ def missing_calibration_fdps(context):
     return [k for k in mpeg4.CALIBRATION_FDPS if k not in pts]
 
 
+def calibration_ready(context):
+    """The scene has a usable scan with every calibration FDP placed."""
+    return scan_problem(context) is None and not missing_calibration_fdps(context)
+
+
 class _Base:
     bl_options = {"REGISTER", "UNDO"}
 
@@ -171,7 +176,7 @@ class HEADADAPT_OT_suggest_landmarks(_Base, bpy.types.Operator):
 
     @classmethod
     def poll(cls, context):
-        return scan_problem(context) is None and not missing_calibration_fdps(context)
+        return calibration_ready(context)
 
     def execute(self, context):
         from .core import suggest
@@ -213,7 +218,7 @@ class HEADADAPT_OT_calibrate(_Base, bpy.types.Operator):
 
     @classmethod
     def poll(cls, context):
-        return scan_problem(context) is None and not missing_calibration_fdps(context)
+        return calibration_ready(context)
 
     def execute(self, context):
         from .core import calibration
@@ -255,7 +260,7 @@ class HEADADAPT_OT_adapt(_Base, bpy.types.Operator):
 
     @classmethod
     def poll(cls, context):
-        return scan_problem(context) is None and not missing_calibration_fdps(context)
+        return calibration_ready(context)
 
     def execute(self, context):
         from . import blendout
@@ -315,8 +320,7 @@ class HEADADAPT_OT_bake_expressions(_Base, bpy.types.Operator):
         return head_root(context) is not None
 
     def execute(self, context):
-        from . import animation
-        from .core import bake
+        from . import blendout
         root = head_root(context)
         if root is None:
             return self.fail("no head: add the template or adapt first")
@@ -325,17 +329,13 @@ class HEADADAPT_OT_bake_expressions(_Base, bpy.types.Operator):
         wm = context.window_manager
         wm.progress_begin(0, 100)
         try:
-            ana = animation.anatomy_from_objects(template(), root)
-            keys, timing = bake.bake(template(), ana, kinds=tuple(self.sets),
-                                     progress=lambda f, _name: wm.progress_update(int(100 * f)))
+            timing = blendout.bake_result(template(), root, kinds=tuple(self.sets), preview=self.preview,
+                                          progress=lambda f, _name: wm.progress_update(int(100 * f)))
         except HeadAdaptError as exc:
             return self.fail(str(exc))
         finally:
             wm.progress_end()
-        animation.write_shape_keys(root, keys)
-        if self.preview and "expression" in self.sets:
-            animation.preview_action(root)
-        self.report({"INFO"}, f"baked {len(keys)} shape keys on {root.name!r} "
+        self.report({"INFO"}, f"baked {timing['keys']} shape keys on {root.name!r} "
                               f"({timing['per_key_s'] * 1000:.0f} ms per key)")
         return {"FINISHED"}
 
@@ -365,16 +365,10 @@ class HEADADAPT_OT_import_fap(_Base, ImportHelper, bpy.types.Operator):
         return {"FINISHED"}
 
 
-classes = (HEADADAPT_OT_bake_expressions, HEADADAPT_OT_import_fap, HEADADAPT_OT_add_template, HEADADAPT_OT_use_active_as_scan, HEADADAPT_OT_import_landmarks,
+classes = (HEADADAPT_OT_add_template, HEADADAPT_OT_use_active_as_scan, HEADADAPT_OT_import_landmarks,
            HEADADAPT_OT_export_landmarks, HEADADAPT_OT_clear_landmark, HEADADAPT_OT_suggest_landmarks,
-           HEADADAPT_OT_accept_suggestions, HEADADAPT_OT_calibrate, HEADADAPT_OT_adapt)
+           HEADADAPT_OT_accept_suggestions, HEADADAPT_OT_calibrate, HEADADAPT_OT_adapt,
+           HEADADAPT_OT_bake_expressions, HEADADAPT_OT_import_fap)
 
 
-def register():
-    for cls in classes:
-        bpy.utils.register_class(cls)
-
-
-def unregister():
-    for cls in reversed(classes):
-        bpy.utils.unregister_class(cls)
+register, unregister = bpy.utils.register_classes_factory(classes)

@@ -155,11 +155,4 @@ def _make_panel(key, label, order):
 classes = tuple(_make_panel(key, label, i) for i, (key, label) in enumerate(PANELS))
 
 
-def register():
-    for cls in classes:
-        bpy.utils.register_class(cls)
-
-
-def unregister():
-    for cls in reversed(classes):
-        bpy.utils.unregister_class(cls)
+register, unregister = bpy.utils.register_classes_factory(classes)

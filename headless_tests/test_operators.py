@@ -182,9 +182,7 @@ def test_expressions_panel_bakes_the_template_and_imports_a_fap_file(ui_scene, t
         # the preview plays the six expressions one after another
         sc = bpy.context.scene
         peaks = []
-        for name in mpeg4.EXPRESSIONS:
-            fc = skin.data.shape_keys.animation_data.action
-            assert fc is not None
+        assert skin.data.shape_keys.animation_data.action is not None
         for frame in range(sc.frame_start, sc.frame_end + 1, 5):
             sc.frame_set(frame)
             peaks.append(max(mpeg4.EXPRESSIONS, key=lambda n: kb[n].value) if max(kb[n].value for n in mpeg4.EXPRESSIONS) > 0.5 else None)

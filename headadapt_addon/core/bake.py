@@ -15,6 +15,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from . import drive, mpeg4, physics
+from .anatomy import surface_point
 
 JAW_FOLLOWERS = ("mandible", "teeth_lower", "tongue")
 
@@ -28,17 +29,13 @@ class BakedKey:
     fap_units: float | None = None
 
 
-def _surface(verts, tris, ref):
-    return np.asarray(ref["bary"]) @ verts[tris[ref["face"]]]
-
-
 def _fap_units(fap, tpl, parts, moved, fapus):
     """FAP units (of the FAP's FAPU) that a key at value 1 moves its FDP along the FAP's direction."""
     ref = tpl.meta["fdps"].get(fap.fdp)
     if ref is None or fap.direction is None or ref["part"] not in moved:
         return None
     tris = tpl.parts[ref["part"]].tris
-    d = _surface(moved[ref["part"]], tris, ref) - _surface(parts[ref["part"]], tris, ref)
+    d = surface_point(moved[ref["part"]], tris, ref) - surface_point(parts[ref["part"]], tris, ref)
     return float(d @ np.asarray(fap.direction) / fapus[fap.unit])
 
 

@@ -11,6 +11,8 @@ common viseme charts; they are data, edit them here.
 
 from __future__ import annotations
 
+import re
+
 from . import mpeg4
 
 
@@ -63,8 +65,8 @@ _FAP_SKIN_LEFT = {
 
 
 def _mirror_name(name):
-    return name.replace("_l_", "_#_").replace("_r_", "_l_").replace("_#_", "_r_").replace("_lm", "_#m") \
-        .replace("_rm", "_lm").replace("_#m", "_rm")
+    """The FAP name of the other side: _l_ <-> _r_ and _lm <-> _rm (raise_l_cornerlip, lower_t_lip_lm_o)."""
+    return re.sub(r"_([lr])(?=_|m\b|m_)", lambda m: "_" + {"l": "r", "r": "l"}[m.group(1)], name)
 
 
 FAP_SKIN = {}

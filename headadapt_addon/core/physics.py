@@ -87,7 +87,6 @@ class SkinModel:
     lids: dict                    # control -> (dofs (k,), stiffness (k,), eye centre, full angle rad, weight (k,), axis)
     bone_point: np.ndarray        # (n,3) nearest bone point of each skin vertex at rest
     bone_normal: np.ndarray       # (n,3) outward bone normal there
-    on_bone_mandible: np.ndarray  # (n,) that bone point is on the mandible
     free: np.ndarray              # (n,) vertices the non-penetration applies to
     clearance: np.ndarray         # (n,) least gap kept to the bone
     tris: np.ndarray              # (t,3) skin triangles
@@ -139,8 +138,8 @@ class SkinModel:
         # the nearest bone point, which moves with the mandible)
         bp, bn = self.bone_point, self.bone_normal
         if jaw_moves:
-            bp = np.where(self.on_bone_mandible[:, None], (bp - self.jaw_pivot) @ rot.T + self.jaw_pivot + t, bp)
-            bn = np.where(self.on_bone_mandible[:, None], bn @ rot.T, bn)
+            bp = np.where(self.on_mandible[:, None], (bp - self.jaw_pivot) @ rot.T + self.jaw_pivot + t, bp)
+            bn = np.where(self.on_mandible[:, None], bn @ rot.T, bn)
         x = self._keep_out_of_bone(x, bp, bn)
         return self._unfold(x, bp, bn)
 
@@ -266,19 +265,15 @@ def build(tpl, anatomy=None):
     forces = _muscle_forces(tpl, rest, normals, n, muscles, sphincters)
     forces.update(_pressure_controls(tpl, skin, normals, fdps, n))
 
-    lips = _regions(tpl, ("upper_lip", "lower_lip"))
     rest_gap = np.einsum("ij,ij->i", skin - closest, bone_fn)
     jaw = tpl.meta["jaw"]
-    # the lips sit in front of the teeth opening, not on bone (the teeth hold them): the bone
-    # plane at the opening's edge is no barrier for them
     tri_n = np.cross(skin[tris[:, 1]] - skin[tris[:, 0]], skin[tris[:, 2]] - skin[tris[:, 0]])
     adj = sparse.coo_matrix((np.ones(2 * len(e)), (np.r_[e[:, 0], e[:, 1]], np.r_[e[:, 1], e[:, 0]])), shape=(n, n)).tocsr()
     adj = sparse.diags(1.0 / np.maximum(np.asarray(adj.sum(axis=1)).ravel(), 1)) @ adj
     return SkinModel(tris=tris, rest_tri_normal=tri_n, tri_ok=np.linalg.norm(tri_n, axis=1) > 1e-14, adjacency=adj,
                      n=n, rest=rest, solve=solve, matrix=matrix, forces=forces, bone_k=bone_k, on_mandible=on_mandible,
                      jaw_pivot=np.asarray(jaw_pivot, dtype=float), jaw_axis=np.asarray(jaw["axis"]), lids=lids,
-                     bone_point=closest, bone_normal=bone_fn, on_bone_mandible=on_mandible,
-                     free=~hidden & (rest_gap > 0),
+                     bone_point=closest, bone_normal=bone_fn, free=~hidden & (rest_gap > 0),
                      clearance=np.minimum(NON_PENETRATION, 0.9 * np.maximum(rest_gap, 0)))
 
 
