@@ -107,9 +107,11 @@ def write_blend(path, tpl, result, scan_verts, scan_tris, landmarks, report, bak
     try:
         bpy.ops.wm.read_homefile(use_empty=True, use_factory_startup=True)
         build_result_scene(tpl, result, scan_verts, scan_tris, landmarks, report, bake=bake)
+        pathlib.Path(tmp).unlink()          # mkstemp only reserved the name: Blender would back up the empty file
         bpy.ops.wm.save_as_mainfile(filepath=tmp, copy=True, compress=True)
         os.chmod(tmp, 0o644)
         os.replace(tmp, path)
     finally:
         pathlib.Path(tmp).unlink(missing_ok=True)
+        pathlib.Path(tmp + "1").unlink(missing_ok=True)
     return path

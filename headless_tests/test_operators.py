@@ -146,6 +146,7 @@ def test_batch_writes_a_blend_that_reopens_with_the_report(tmp_path):
                            "--landmarks", str(SAMPLE_DIR / "landmarks.json"), "--out", str(out), "--levels", "1",
                            "--blend", str(out / "head.blend")], capture_output=True, text=True)
     assert proc.returncode == 0, proc.stderr
+    assert not list(out.glob(".*")), list(out.glob(".*"))          # no temporary or backup file left behind
     check = ("import bpy, json, sys; bpy.ops.wm.open_mainfile(filepath=sys.argv[1]);"
              "root = bpy.data.objects['HA Adapted head']; rep = json.loads(root['headadapt_report']);"
              "scan = bpy.data.objects['scan'];"
