@@ -757,7 +757,27 @@ def cut_skull(T, skull):
     cut |= (reg_q == R["mouth_interior"]).any(axis=1)
     cut |= mouth & (z > fdp["9.9"][2] - 0.003) & (z < fdp["9.8"][2] + 0.003)
     jaw = np.isin(reg_q, [R["chin_jaw"], R["lower_lip"]]).sum(axis=1) >= 3
-    return quads[~cut & ~jaw], quads[~cut & jaw]
+    # tidy the cut: a few stray quads at the lateral canthi would leave pin holes in the orbit's
+    # rim, and slivers at the mouth corners would be bone islands; fill the one, drop the other
+    label, size = quad_components(quads, cut)
+    cut &= ~(size[label] <= 4)
+    keep = []
+    for mask in (~cut & ~jaw, ~cut & jaw):
+        label, size = quad_components(quads, mask)
+        keep.append(mask & (label == np.argmax(size)))
+    return quads[keep[0]], quads[keep[1]]
+
+
+def quad_components(quads, mask):
+    """Component label (k,) of each quad among those in mask (sharing a vertex), and the sizes."""
+    sel = np.flatnonzero(mask)
+    n = int(quads.max()) + 1
+    rows = np.repeat(np.arange(len(sel)), 4)
+    incidence = sparse.coo_matrix((np.ones(len(rows)), (rows, quads[sel].ravel())), shape=(len(sel), n)).tocsr()
+    _, lab = csgraph.connected_components(incidence @ incidence.T, directed=False)
+    label = np.full(len(quads), -1)
+    label[sel] = lab
+    return label, np.append(np.bincount(lab), 0)      # label -1 reads size 0
 
 
 # ----------------------------------------------------------------------------------------------

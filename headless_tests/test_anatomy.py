@@ -48,10 +48,15 @@ def test_muscle_ends_lie_on_their_surfaces_and_in_their_regions(tpl, transferred
 
 
 def test_the_skull_stays_inside_the_adapted_skin(tpl, transferred):
+    visible = ~np.isin(tpl.region, [tpl.region_names.index(r) for r in anatomy.HIDDEN_REGIONS])
+    bone_t = np.vstack([tpl.parts["cranium"].tris, tpl.parts["mandible"].tris + len(tpl.parts["cranium"].verts)])
     for _, _, ana in transferred:
         for bone in ("cranium", "mandible"):
             w = winding_numbers(ana.parts[bone], ana.parts["skin"], tpl.skin.tris)
             assert w.min() > 0.5, (bone, w.min())
+        # and the converse: no visible skin vertex of the adapted head lies inside the bone
+        w = winding_numbers(ana.parts["skin"][visible], np.vstack([ana.parts["cranium"], ana.parts["mandible"]]), bone_t)
+        assert w.max() < 0.5, np.flatnonzero(visible)[w > 0.5]
 
 
 def test_eyes_sit_in_their_sockets(tpl, transferred):

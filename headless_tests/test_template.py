@@ -174,6 +174,23 @@ def test_skull_is_inside_the_skin_and_no_visible_skin_is_inside_the_skull(tpl):
     assert w[~_hidden(tpl)].max() < 0.5
 
 
+def test_each_bone_is_one_piece_without_pin_holes(tpl):
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    from headadapt_addon.core.geometry import boundary_edges
+    for bone in ("cranium", "mandible"):
+        part = tpl.parts[bone]
+        n, t = len(part.verts), part.tris
+        rows = np.repeat(np.arange(len(t)), 3)
+        incidence = coo_matrix((np.ones(len(rows)), (rows, t.ravel())), shape=(len(t), n)).tocsr()
+        assert connected_components(incidence @ incidence.T, directed=False)[0] == 1, bone
+        rim = boundary_edges(t)                       # every opening is a real one (orbit, nose, ...)
+        graph = coo_matrix((np.ones(len(rim)), (rim[:, 0], rim[:, 1])), shape=(n, n))
+        label = connected_components(graph, directed=False)[1][rim[:, 0]]
+        assert np.bincount(label)[np.unique(label)].min() >= 12, bone
+
+
 def test_tissue_depths_match_the_table(tpl):
     skin = tpl.skin
     normals = _vertex_normals(skin.verts, skin.tris)

@@ -110,6 +110,45 @@ def keep_inside(tpl, bone_template, bone_mapped, skin_adapted, clearance=0.0015)
     return out
 
 
+def clear_visible_skin(tpl, skin, cranium, mandible, limit=0.48, radius=0.008, step=0.001, rounds=20):
+    """Cranium and mandible (template frame, m) pressed inward until no visible skin vertex is inside.
+
+    keep_inside puts every bone point under the skin; this is the converse, for skin points that a
+    thin scan brings down onto a bone rim (lids over the orbit's edge, brows): while a visible skin
+    vertex near the bone has a winding number over `limit` w.r.t. the bone, the bone within
+    `radius` of it steps `step` (fading with distance) against the skin's normal there.
+    """
+    from scipy.spatial import cKDTree
+
+    from .geometry import vertex_normals
+    from .inside import winding_numbers
+    from .spatial import MeshQuery
+
+    n_cr = len(cranium)
+    bone = np.vstack([cranium, mandible]).astype(np.float64)
+    tris = np.vstack([tpl.parts["cranium"].tris, tpl.parts["mandible"].tris + n_cr])
+    visible = np.flatnonzero(~np.isin(tpl.region, [tpl.region_names.index(r) for r in HIDDEN_REGIONS]))
+    normals = vertex_normals(skin, tpl.skin.tris)
+    # each bone vertex deepens along the skin normal of the skin vertex it was offset from
+    inward = -normals[np.r_[tpl.bone_skin_index["cranium"], tpl.bone_skin_index["mandible"]]]
+    near = visible[MeshQuery(bone, tris, backend="numpy").closest_points(skin[visible])[2] < 0.002]
+    check = near
+    for _ in range(rounds):
+        w = winding_numbers(skin[check], bone, tris)
+        bad = check[w > limit]
+        if not len(bad):
+            if len(check) == len(near):
+                break
+            check = near                          # a last look at every point near the bone
+            continue
+        pairs = cKDTree(skin[bad]).sparse_distance_matrix(cKDTree(bone), radius, output_type="coo_matrix")
+        push = np.zeros_like(bone)
+        np.add.at(push, pairs.col, (step * (1.0 - pairs.data / radius))[:, None] * inward[pairs.col])
+        bone += push
+        check = near[cKDTree(skin[bad]).query(skin[near], distance_upper_bound=radius)[0] < np.inf]
+    return bone[:n_cr], bone[n_cr:]
+
+
 def surface_point(verts, tris, ref):
     """Point (3,) of a {"face", "bary"} reference on a mesh (verts (n,3), tris (k,3))."""
     return np.asarray(ref["bary"]) @ verts[tris[ref["face"]]]
@@ -121,6 +160,7 @@ def transfer(tpl, result):
     tris = {name: part.tris for name, part in tpl.parts.items()}
     for name in ("cranium", "mandible"):          # the skull through the final map (all last-level FPs)
         parts[name] = keep_inside(tpl, tpl.parts[name].verts, result.map_points(tpl.parts[name].verts), result.verts)
+    parts["cranium"], parts["mandible"] = clear_visible_skin(tpl, result.verts, parts["cranium"], parts["mandible"])
 
     tpl_fdps = tpl.fdp_points()
     fdps = {}

@@ -59,6 +59,7 @@ class Template:
     region_weights: np.ndarray
     skin_mirror: np.ndarray   # (n_skin,) index of each skin vertex's left/right partner
     meta: dict           # the whole template.json
+    bone_skin_index: dict = dataclasses.field(default_factory=dict)   # bone -> (n_bone,) skin vertex it was offset from
 
     @property
     def skin(self):
@@ -105,4 +106,5 @@ def load_template(directory=None):
     return Template(parts=parts, region=arrays["skin_region"],
                     region_names=tuple(r["name"] for r in regions),
                     region_weights=np.array([r["weight"] for r in regions]),
-                    skin_mirror=arrays["skin_mirror"], meta=meta)
+                    skin_mirror=arrays["skin_mirror"], meta=meta,
+                    bone_skin_index={b: arrays[f"{b}_skin_index"] for b in BONES if f"{b}_skin_index" in arrays})
