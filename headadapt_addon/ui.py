@@ -4,7 +4,8 @@ import json
 
 import bpy
 
-from . import landmarks
+from . import landmarks, scene
+from .ops import head_root
 from .core import mpeg4
 
 PANELS = (
@@ -97,12 +98,11 @@ def draw_anatomy(layout, context):
 
 
 def draw_expressions(layout, context):
-    s = _settings(context)
-    root = s.result_root or s.template_root
+    root = head_root(context)
     if root is None:
         layout.label(text="Add the template or adapt first", icon="INFO")
     else:
-        skin = next((o for o in root.children_recursive if o.get("headadapt_part") == "skin"), None)
+        skin = scene.template_objects(root).get("skin")
         baked = len(json.loads(skin.get("headadapt_keys", "{}"))) if skin else 0
         layout.label(text=f"{root.name}: {baked} baked keys" if baked else f"{root.name}: not baked yet",
                      icon="CHECKMARK" if baked else "INFO")

@@ -66,6 +66,11 @@ def rigid_from_fdps(part_verts, template_fdps, adapted_fdps, x_pair, y_pair, ref
 HIDDEN_REGIONS = ("mouth_interior", "eye_socket_l", "eye_socket_r")
 
 
+def _hidden(tpl):
+    """(n_skin,) mask of the skin that is never seen: the mouth bag, the lids folded behind the eyes."""
+    return np.isin(tpl.region, [tpl.region_names.index(r) for r in HIDDEN_REGIONS])
+
+
 def keep_inside(tpl, bone_template, bone_mapped, skin_adapted, clearance=0.0015):  # noqa: C901
     """Mapped bone points (n,3), moved where needed to at least `clearance` under the adapted skin.
 
@@ -77,7 +82,7 @@ def keep_inside(tpl, bone_template, bone_mapped, skin_adapted, clearance=0.0015)
     from .geometry import face_normals
     from .spatial import MeshQuery, barycentric
 
-    hidden = np.isin(tpl.region, [tpl.region_names.index(r) for r in HIDDEN_REGIONS])
+    hidden = _hidden(tpl)
     faces = tpl.skin.tris[~hidden[tpl.skin.tris].any(axis=1)]
     near, face, depth0 = MeshQuery(tpl.skin.verts, faces).closest_points(bone_template)
     clearance = np.minimum(clearance, 0.8 * depth0)      # never deeper than the template itself had it
@@ -116,7 +121,8 @@ def clear_visible_skin(tpl, skin, cranium, mandible, limit=0.48, radius=0.008, s
     keep_inside puts every bone point under the skin; this is the converse, for skin points that a
     thin scan brings down onto a bone rim (lids over the orbit's edge, brows): while a visible skin
     vertex near the bone has a winding number over `limit` w.r.t. the bone, the bone within
-    `radius` of it steps `step` (fading with distance) against the skin's normal there.
+    `radius` of it steps `step` deeper (fading with distance), each bone vertex along the inward
+    normal of the skin vertex the template offset it from.
     """
     from scipy.spatial import cKDTree
 
@@ -127,7 +133,7 @@ def clear_visible_skin(tpl, skin, cranium, mandible, limit=0.48, radius=0.008, s
     n_cr = len(cranium)
     bone = np.vstack([cranium, mandible]).astype(np.float64)
     tris = np.vstack([tpl.parts["cranium"].tris, tpl.parts["mandible"].tris + n_cr])
-    visible = np.flatnonzero(~np.isin(tpl.region, [tpl.region_names.index(r) for r in HIDDEN_REGIONS]))
+    visible = np.flatnonzero(~_hidden(tpl))
     normals = vertex_normals(skin, tpl.skin.tris)
     # each bone vertex deepens along the skin normal of the skin vertex it was offset from
     inward = -normals[np.r_[tpl.bone_skin_index["cranium"], tpl.bone_skin_index["mandible"]]]

@@ -31,14 +31,18 @@ def _both(recipe):
 
 # Low-level FAPs on the skin: {FAP name: {control: activation at key value 1}} (left ones; the
 # right ones are mirrored below). Key value 1 moves the FAP's FDP in the FAP's direction.
-_FAP_SKIN_LEFT = {
-    "open_jaw": {"jaw_open": 1.0},
+_INNER_LIP_LEFT = {
     "lower_t_midlip": {"orbicularis_oris": 1.0},
     "raise_b_midlip": {"mentalis_l": 0.5, "mentalis_r": 0.5, "orbicularis_oris": 0.5},
     "stretch_l_cornerlip": {"risorius_l": 1.0},
     "lower_t_lip_lm": {"orbicularis_oris": 0.5},
     "raise_b_lip_lm": {"mentalis_l": 1.0, "orbicularis_oris": 0.3},
     "raise_l_cornerlip": {"zygomaticus_major_l": 1.0},
+}
+_FAP_SKIN_LEFT = {
+    "open_jaw": {"jaw_open": 1.0},
+    **_INNER_LIP_LEFT,
+    **{f"{name}_o": recipe for name, recipe in _INNER_LIP_LEFT.items()},   # outer lip (FAPs 51-60): same muscles
     "thrust_jaw": {"jaw_thrust": 1.0},
     "shift_jaw": {"jaw_shift": 1.0},
     "push_b_lip": {"lip_push_lower": 1.0},
@@ -52,12 +56,6 @@ _FAP_SKIN_LEFT = {
     "squeeze_l_eyebrow": {"corrugator_l": 1.0},
     "puff_l_cheek": {"cheek_puff_l": 1.0},
     "lift_l_cheek": {"orbicularis_oculi_l": 1.0},
-    "lower_t_midlip_o": {"orbicularis_oris": 1.0},
-    "raise_b_midlip_o": {"mentalis_l": 0.5, "mentalis_r": 0.5, "orbicularis_oris": 0.5},
-    "stretch_l_cornerlip_o": {"risorius_l": 1.0},
-    "lower_t_lip_lm_o": {"orbicularis_oris": 0.5},
-    "raise_b_lip_lm_o": {"mentalis_l": 1.0, "orbicularis_oris": 0.3},
-    "raise_l_cornerlip_o": {"zygomaticus_major_l": 1.0},
     "stretch_l_nose": {"nasalis_l": 1.0},
     "raise_nose": {"levator_labii_superioris_l": 0.5, "levator_labii_superioris_r": 0.5},
     "bend_nose": {"nasalis_r": 1.0},

@@ -186,10 +186,15 @@ def _regions(tpl, names):
     return np.isin(tpl.region, [tpl.region_names.index(r) for r in names])
 
 
+def _mirror_dofs(tpl, idx_l, n):
+    """The right side's dof indices (any layer) of left ones, through hm08.mirror."""
+    layer, v = np.divmod(idx_l, n)
+    return layer * n + tpl.skin_mirror[v]
+
+
 def _mirror_control(tpl, idx_l, vec_l, n):
     """The right side's force of a left control: vertex through hm08.mirror, x flipped."""
-    layer, v = np.divmod(idx_l, n)
-    return layer * n + tpl.skin_mirror[v], vec_l * [-1.0, 1.0, 1.0]
+    return _mirror_dofs(tpl, idx_l, n), vec_l * [-1.0, 1.0, 1.0]
 
 
 def _normalised(idx, direction, weight, strength):
@@ -379,7 +384,6 @@ def _lid_controls(tpl, skin, parts, fdps, n):
         idx = np.concatenate([v + layer * n for layer in range(3)])
         wk = np.tile(w[v], 3)
         out[f"{which}_lid_l"] = (idx, LID_STIFFNESS * wk, centre, full, wk, axis)
-        layer, vv = np.divmod(idx, n)
-        out[f"{which}_lid_r"] = (layer * n + tpl.skin_mirror[vv], LID_STIFFNESS * wk, parts["eye_r"].mean(axis=0),
+        out[f"{which}_lid_r"] = (_mirror_dofs(tpl, idx, n), LID_STIFFNESS * wk, parts["eye_r"].mean(axis=0),
                                  full, wk, axis * [1.0, -1.0, -1.0])   # an axis is a pseudovector
     return out
