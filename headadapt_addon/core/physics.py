@@ -8,6 +8,11 @@ Springs are linearised about the rest shape (energy sum k |(x_i - x_j) - (X_i - 
 equilibrium for any set of controls is one solve with the same sparse factorisation: fast and
 stable, no time steps.
 
+After the solve the skin is kept out of the bone (cranium, mandible where the jaw put it): points
+that may be near it (a 1-Lipschitz bound on their distance) are pushed out along the way out, a
+point at one of the bone's openings (judged by the winding number) that no push gets out gives up
+part of its displacement, and a local relaxation undoes folded triangles.
+
 Controls, each with an activation (0 = rest, 1 = full):
 - linear muscles (Waters-style angular and radial fall-off) and sphincters (on their ellipse)
   pull the hypodermis inside their regions;
@@ -27,9 +32,11 @@ import dataclasses
 import numpy as np
 from scipy import sparse
 from scipy.sparse.linalg import splu
+from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from . import geometry, spatial
+from .inside import winding_numbers
 
 LAYER_DEPTHS = (0.0, 0.3, 0.7)        # fractions of the tissue depth: epidermis, dermis, hypodermis
 STIFFNESS = {"epidermis": 1.0, "dermis": 0.3, "hypodermis": 0.8, "vertical": 0.6, "diagonal": 0.2}
@@ -47,6 +54,11 @@ PUFF_FORWARD = 3.0
 FUNNEL_FORWARD = 1.0
 PUFF_OFFSET, PUFF_RADIUS = 0.5, 0.9  # puff centre beside the lip corner and reach, in mouth widths
 UNFOLD_STEPS = 80                     # most local relaxation steps against folded triangles
+SLIVER = 0.01                         # a triangle whose least height is under this fraction of its
+                                      # longest edge (under ~0.6 deg) has no orientation to keep
+CONTACT_ROUNDS = 4                    # pushes per contact step (a point at a bone opening may need more)
+OPENING_REACH = 0.01                  # bone faces this close to a hole of the bone are 'by an opening', m
+RETRACT_STEPS = 8                     # bisection steps of the last guard against penetration
 NON_PENETRATION = 0.001               # skin stays at least this far outside the bone, m
 HIDDEN_REGIONS = ("mouth_interior", "eye_socket_l", "eye_socket_r")
 
@@ -85,14 +97,15 @@ class SkinModel:
     jaw_pivot: np.ndarray
     jaw_axis: np.ndarray
     lids: dict                    # control -> (dofs (k,), stiffness (k,), eye centre, full angle rad, weight (k,), axis)
-    bone_point: np.ndarray        # (n,3) nearest bone point of each skin vertex at rest
+    bone_dist: np.ndarray         # (n,2) rest distance of each skin vertex to the cranium, the mandible
     bone_normal: np.ndarray       # (n,3) outward bone normal there
     free: np.ndarray              # (n,) vertices the non-penetration applies to
     clearance: np.ndarray         # (n,) least gap kept to the bone
     tris: np.ndarray              # (t,3) skin triangles
     rest_tri_normal: np.ndarray   # (t,3) their normals at rest (area-weighted)
-    tri_ok: np.ndarray            # (t,) not degenerate at rest
+    tri_ok: np.ndarray            # (t,) has an orientation at rest (not a sliver, see SLIVER)
     adjacency: object             # (n,n) sparse, row-normalised vertex neighbours
+    bone: tuple                   # cranium and mandible: (queries, face normals), verts, bone tris
 
     @property
     def controls(self):
@@ -134,21 +147,122 @@ class SkinModel:
                 f[idx] += k[:, None] * (turned - rel)
         u = self.solve(f)
         x = self.rest[: self.n] + u[: self.n]
-        # skull non-penetration: no skin closer than the clearance to the bone (tangent plane of
-        # the nearest bone point, which moves with the mandible)
-        bp, bn = self.bone_point, self.bone_normal
-        if jaw_moves:
-            bp = np.where(self.on_mandible[:, None], (bp - self.jaw_pivot) @ rot.T + self.jaw_pivot + t, bp)
-            bn = np.where(self.on_mandible[:, None], bn @ rot.T, bn)
-        x = self._keep_out_of_bone(x, bp, bn)
-        return self._unfold(x, bp, bn)
+        # skull non-penetration, on the true bone (the mandible moved)
+        bn = np.where(self.on_mandible[:, None], self.bone_normal @ rot.T, self.bone_normal)
+        contact = _Contact(bn, (rot, t))
+        x = self._keep_out_of_bone(x, contact)
+        return self._unfold(self._retract_from_bone(x, contact), contact)
 
-    def _keep_out_of_bone(self, x, bp, bn):
-        gap = np.einsum("ij,ij->i", x - bp, bn)
-        deficit = np.where(self.free, np.maximum(self.clearance - gap, 0.0), 0.0)
-        for _ in range(3):              # neighbours share part of a push, so it shears no triangle
-            deficit = np.maximum(deficit, 0.6 * (self.adjacency @ deficit)) * self.free
-        return x + deficit[:, None] * bn
+    def _bone_gap(self, pts, outward, rot, t, known):
+        """Signed gap (k,) of skin points (k,3) above the bone with the mandible at (rot, t), the
+        unit direction (k,3) that leads out, (k,) bools at an opening (odd) and inside, and how far
+        each point may move and keep its side (k,), signed like the gap, NaN where `known` gave the
+        side: metres. `known` (k,) is +1/-1 where the side is already known, 0 where not.
+
+        Inside is a winding number over 1/2 (it sees the bone's openings right); it is computed
+        only where the nearest face leaves a doubt, or by a hole in the bone (there the winding
+        number's 1/2 level spans the hole, off the bone). A point in front of its nearest face that
+        is inside sits at an opening: its way out is `outward`, its gap counts as 0."""
+        (q_cr, n_cr, open_cr), (q_md, n_md, open_md), *_ = self.bone
+        c_cr, f_cr, d_cr = q_cr.closest_points(pts)
+        local = (pts - self.jaw_pivot - t) @ rot + self.jaw_pivot          # into the mandible's rest frame
+        c_md, f_md, d_md = q_md.closest_points(local)
+        use_md = d_md < d_cr
+        dist = np.minimum(d_md, d_cr)
+        closest = np.where(use_md[:, None], (c_md - self.jaw_pivot) @ rot.T + self.jaw_pivot + t, c_cr)
+        away = (pts - closest) / np.maximum(dist, 1e-12)[:, None]
+        side = np.where(use_md, np.einsum("ij,ij->i", local - c_md, n_md[f_md]),
+                        np.einsum("ij,ij->i", pts - c_cr, n_cr[f_cr]))
+        face_out = side >= 0.999 * dist
+        by_opening = open_cr[f_cr] | open_md[f_md]
+        inside = known < 0
+        keeps = np.where(known == 0, dist, np.nan)              # a plain face answer holds within the gap
+        ask = (~face_out | by_opening | (dist < 2 * NON_PENETRATION)) & (known == 0)
+        if ask.any():
+            w = self._winding(pts[ask], rot, t)
+            inside[ask] = w > 0.5
+            # w is harmonic off the bone and within [-1/4, 5/4]: |grad w| <= 3 * 3/4 / dist, so w
+            # stays on its side of 1/2 while the point moves less than this
+            keeps[ask] = dist[ask] * -np.expm1(-np.abs(w - 0.5) / 2.25)
+        odd = inside & face_out
+        gap = np.where(inside, np.where(odd, 0.0, -dist), dist)
+        way_out = np.where(odd[:, None], outward, np.where(inside[:, None], -away, away))
+        return gap, way_out, odd, inside, np.where(inside, -keeps, keeps)
+
+    def _winding(self, pts, rot, t):
+        """Winding number (k,) of skin points (k,3) in the bone (cranium, mandible at (rot, t))."""
+        _, _, v_cr, v_md, bone_t = self.bone
+        moved_md = (v_md - self.jaw_pivot) @ rot.T + self.jaw_pivot + t
+        return winding_numbers(pts, np.vstack([v_cr, moved_md]), bone_t)
+
+    def _inside(self, pts, rot, t):
+        """Whether skin points (k,3) are inside the bone (cranium and the mandible at (rot, t))."""
+        return self._winding(pts, rot, t) > 0.5
+
+    def _keep_out_of_bone(self, x, contact, only=None):
+        """Skin x (n,3) pushed out to the clearance above the (moved) bone, metres: a few rounds of
+        pushes along the way out, each shared with the neighbours so it shears no triangle. `only`
+        (n,) bool limits the look to vertices that moved since the last look."""
+        rot, t = contact.jaw
+        for _ in range(CONTACT_ROUNDS):
+            near = self._near_bone(x, contact, only)
+            if not len(near):
+                break
+            gap, way_out, odd, _, keeps = self._bone_gap(x[near], contact.outward[near], rot, t,
+                                                         contact.known_side(x, near))
+            fresh = ~np.isnan(keeps)
+            contact.sided_at[near[fresh]], contact.sided_keep[near[fresh]] = x[near[fresh]], keeps[fresh]
+            contact.normal[near] = way_out
+            deficit = np.zeros(self.n)
+            deficit[near] = np.maximum(self.clearance[near] - gap, 0.0)
+            for _ in range(3):          # neighbours share part of a push, so it shears no triangle
+                deficit = np.maximum(deficit, 0.6 * (self.adjacency @ deficit)) * self.free
+            x = x + deficit[:, None] * contact.normal
+            if not odd.any():
+                break
+        return x
+
+    def _near_bone(self, x, contact, only=None):
+        """Indices of free skin vertices at x (n,3) that may be within their clearance of the bone:
+        the rest distance to each bone, less how far the vertex moved relative to that bone, bounds
+        its distance now (distance is 1-Lipschitz)."""
+        rot, t = contact.jaw
+        rest = self.rest[: self.n]
+        local = (x - self.jaw_pivot - t) @ rot + self.jaw_pivot               # mandible's rest frame
+        bound = np.minimum(self.bone_dist[:, 0] - np.linalg.norm(x - rest, axis=1),
+                           self.bone_dist[:, 1] - np.linalg.norm(local - rest, axis=1))
+        near = self.free & (bound < self.clearance)
+        return np.flatnonzero(near if only is None else near & only)
+
+    def _retract_from_bone(self, x, contact, only=None):
+        """Skin x (n,3) with each vertex still inside the bone drawn back toward its rest place on
+        its bone (moved with the mandible) until it is out by its clearance, metres.
+
+        The last guard, for a point at a bone opening that no push along a normal gets out (the
+        lower lip's inner roll behind the maxilla's rim): it gives up part of its displacement.
+        `only` (n,) bool limits the look to vertices that moved since the last look."""
+        rot, t = contact.jaw
+        near = self._near_bone(x, contact, only)
+        if not len(near):
+            return x
+        inside = self._bone_gap(x[near], contact.outward[near], rot, t, contact.known_side(x, near))[3]
+        bad = near[inside]
+        if not len(bad):
+            return x
+        rest = self.rest[: self.n]
+        home = np.where(self.on_mandible[:, None], (rest - self.jaw_pivot) @ rot.T + self.jaw_pivot + t, rest)
+        home[bad] = np.where(self._inside(home[bad], rot, t)[:, None], rest[bad], home[bad])
+        lo, hi = np.zeros(len(bad)), np.ones(len(bad))                 # fraction of the way home
+        for _ in range(RETRACT_STEPS):
+            mid = 0.5 * (lo + hi)
+            ins = self._inside(x[bad] + mid[:, None] * (home[bad] - x[bad]), rot, t)
+            lo, hi = np.where(ins, mid, lo), np.where(ins, hi, mid)
+        span = np.maximum(np.linalg.norm(home[bad] - x[bad], axis=1), 1e-12)
+        frac = np.zeros(self.n)
+        frac[bad] = np.minimum(hi + self.clearance[bad] / span, 1.0)
+        for _ in range(3):                     # neighbours give up part of theirs too
+            frac = np.maximum(frac, 0.6 * (self.adjacency @ frac)) * self.free
+        return x + frac[:, None] * (home - x)
 
     def flipped(self, x):
         """Indices of skin triangles whose normal turned against its rest normal at positions x (n,3)."""
@@ -156,7 +270,7 @@ class SkinModel:
         nrm = np.cross(x[t[:, 1]] - x[t[:, 0]], x[t[:, 2]] - x[t[:, 0]])
         return np.flatnonzero((np.einsum("ij,ij->i", nrm, self.rest_tri_normal) <= 0) & self.tri_ok)
 
-    def _unfold(self, x, bp, bn):
+    def _unfold(self, x, contact):
         """Relax the displacement around folded triangles (Jacobi steps toward the neighbours' mean).
 
         Springs that only resist stretch let tiny triangles (lip corners, lid margins) fold under
@@ -173,8 +287,45 @@ class SkinModel:
             for _ in range(10):
                 u = x - rest
                 x[patch] = rest[patch] + (self.adjacency @ u)[patch]
-            x = self._keep_out_of_bone(x, bp, bn)
+            moved = patch | (self.adjacency @ patch.astype(float) > 0)
+            x = self._retract_from_bone(self._keep_out_of_bone(x, contact, moved), contact, moved)
         return x
+
+
+@dataclasses.dataclass
+class _Contact:
+    """Skin-bone contact during one equilibrium: per skin vertex its outward rest bone direction
+    (moved with the mandible), the mandible's (rot, t), the direction a push moves it (out of the
+    bone), and where its side of the bone was last decided with how far it may move and keep it,
+    signed: + outside, - inside (0: never)."""
+    outward: np.ndarray
+    jaw: tuple
+    normal: np.ndarray = None
+    sided_at: np.ndarray = None
+    sided_keep: np.ndarray = None
+
+    def __post_init__(self):
+        self.normal = self.outward.copy()
+        self.sided_at = np.zeros_like(self.outward)
+        self.sided_keep = np.zeros(len(self.outward))
+
+    def known_side(self, x, idx):
+        """+1 / -1 where vertices idx of skin x (n,3) are known outside / inside the bone, 0 where
+        not: a point keeps its side while it moves less than its distance to the bone."""
+        moved = np.linalg.norm(x[idx] - self.sided_at[idx], axis=1)
+        old = self.sided_keep[idx]
+        return np.where(moved < np.abs(old), np.sign(old), 0.0)
+
+
+def _near_opening(verts, tris):
+    """(f,) bool: faces with a vertex within OPENING_REACH of the mesh's open boundary (metres)."""
+    e = np.sort(np.concatenate([tris[:, [0, 1]], tris[:, [1, 2]], tris[:, [2, 0]]]), axis=1)
+    edges, count = np.unique(e, axis=0, return_counts=True)
+    rim = np.unique(edges[count == 1])
+    if not len(rim):
+        return np.zeros(len(tris), bool)
+    d, _ = cKDTree(np.asarray(verts)[rim]).query(np.asarray(verts))
+    return (d < OPENING_REACH)[tris].any(axis=1)
 
 
 def _edges(tris):
@@ -216,10 +367,12 @@ def build(tpl, anatomy=None):
     skin, tris = parts["skin"], tpl.skin.tris
     n = len(skin)
     normals = geometry.vertex_normals(skin, tris)
-    bone_v = np.vstack([parts["cranium"], parts["mandible"]])
     bone_t = np.vstack([tpl.parts["cranium"].tris, tpl.parts["mandible"].tris + len(parts["cranium"])])
-    closest, face, depth = spatial.MeshQuery(bone_v, bone_t, backend="numpy").closest_points(skin)
-    on_mandible = face >= len(tpl.parts["cranium"].tris)
+    queries = {k: spatial.MeshQuery(parts[k], tpl.parts[k].tris, backend="numpy") for k in ("cranium", "mandible")}
+    (c_cr, _, d_cr), (c_md, _, d_md) = (queries[k].closest_points(skin) for k in ("cranium", "mandible"))
+    on_mandible = d_md <= d_cr                                   # a tie (a shared rim) rides the jaw
+    closest, depth = np.where(on_mandible[:, None], c_md, c_cr), np.minimum(d_cr, d_md)
+    bone_dist = np.column_stack([d_cr, d_md])
     # outward direction of the distance to the bone (robust at the bone's openings and folds)
     bone_fn = skin - closest
     bone_fn /= np.maximum(np.linalg.norm(bone_fn, axis=1, keepdims=True), 1e-12)
@@ -229,6 +382,7 @@ def build(tpl, anatomy=None):
         right, mir = skin[:, 0] < 0, tpl.skin_mirror
         closest[right], bone_fn[right] = closest[mir[right]] * [-1, 1, 1], bone_fn[mir[right]] * [-1, 1, 1]
         depth[right], on_mandible[right] = depth[mir[right]], on_mandible[mir[right]]
+        bone_dist[right] = bone_dist[mir[right]]
         mid = np.abs(skin[:, 0]) < 1e-9                    # midline: the bone normal has no sideways part
         closest[mid, 0], bone_fn[mid, 0] = 0.0, 0.0
         bone_fn[mid] /= np.maximum(np.linalg.norm(bone_fn[mid], axis=1, keepdims=True), 1e-12)
@@ -273,12 +427,17 @@ def build(tpl, anatomy=None):
     rest_gap = np.einsum("ij,ij->i", skin - closest, bone_fn)
     jaw = tpl.meta["jaw"]
     tri_n = np.cross(skin[tris[:, 1]] - skin[tris[:, 0]], skin[tris[:, 2]] - skin[tris[:, 0]])
+    longest = np.linalg.norm(skin[tris] - skin[np.roll(tris, 1, axis=1)], axis=2).max(axis=1)
+    tri_ok = np.linalg.norm(tri_n, axis=1) > SLIVER * np.maximum(longest, 1e-12) ** 2   # |cross| / edge^2 = height / edge
     adj = sparse.coo_matrix((np.ones(2 * len(e)), (np.r_[e[:, 0], e[:, 1]], np.r_[e[:, 1], e[:, 0]])), shape=(n, n)).tocsr()
     adj = sparse.diags(1.0 / np.maximum(np.asarray(adj.sum(axis=1)).ravel(), 1)) @ adj
-    return SkinModel(tris=tris, rest_tri_normal=tri_n, tri_ok=np.linalg.norm(tri_n, axis=1) > 1e-14, adjacency=adj,
+    bone = tuple((queries[k], geometry.face_normals(parts[k], tpl.parts[k].tris),
+                  _near_opening(parts[k], tpl.parts[k].tris)) for k in ("cranium", "mandible"))
+    bone += (np.asarray(parts["cranium"], float), np.asarray(parts["mandible"], float), bone_t)
+    return SkinModel(bone=bone, tris=tris, rest_tri_normal=tri_n, tri_ok=tri_ok, adjacency=adj,
                      n=n, rest=rest, solve=solve, matrix=matrix, forces=forces, bone_k=bone_k, on_mandible=on_mandible,
                      jaw_pivot=np.asarray(jaw_pivot, dtype=float), jaw_axis=np.asarray(jaw["axis"]), lids=lids,
-                     bone_point=closest, bone_normal=bone_fn, free=~hidden & (rest_gap > 0),
+                     bone_dist=bone_dist, bone_normal=bone_fn, free=~hidden & (rest_gap > 0),
                      clearance=np.minimum(NON_PENETRATION, 0.9 * np.maximum(rest_gap, 0)))
 
 
