@@ -19,7 +19,8 @@ Controls, each with an activation (0 = rest, 1 = full):
 - `jaw_open` turns the mandible about the jaw pivot, `jaw_thrust` / `jaw_shift` slide it; the
   skin follows through its springs to the bone;
 - `upper_lid_l/r`, `lower_lid_l/r` turn the lids about the eyeball's centre (the tarsal plate
-  riding on the eye), 1 = the margin reaches the opposite lid's margin;
+  riding on the eye); at 1 the upper margin meets the lower all along the fissure, the lower
+  rises LOWER_LID_SHARE of the opening;
 - `cheek_puff_l/r` push the cheeks out (air pressure in the mouth);
 - `lip_push_upper/lower` push the lips forward (the lip's own protrusion).
 Template frame (or the adapted head's, same axes), metres.
@@ -45,6 +46,7 @@ LOOSE_BONE_STIFFNESS = 0.15           # under the lips and cheeks, where the ski
 LOOSE_REGIONS = ("upper_lip", "lower_lip", "cheek_l", "cheek_r", "mouth_interior", "neck")
 JAW_STIFFNESS = 50.0                  # hypodermis on the mandible (outside the lips)
 LID_REACH = 1.7                       # the lid's turn fades to 0 at this many margin radii from the eye axis
+LOWER_LID_SHARE = 0.35                # the lower lid at 1 rises this share of the opening (as in a blink)
 LID_STIFFNESS = 5.0                   # lid skin on its tarsal plate
 MUSCLE_CONE_DEG = 15.0               # Waters' angular fall-off: zero at this angle off the muscle axis
 MUSCLE_BAND = 0.15                    # radial fall-off: zero this fraction of the length from the insertion
@@ -328,6 +330,24 @@ def _near_opening(verts, tris):
     return (d < OPENING_REACH)[tris].any(axis=1)
 
 
+def _fissure_opening(along, phi, upper, lid_skin, mid, half, bins=12):
+    """Per vertex (n,): the angle (rad) between the lid margins in its column of the fissure
+    (`along` the corner line, metres), from the visible lid skin: the upper margin is the most
+    closed upper-lid vertex, the lower margin the most closed lower-lid vertex; 0 at the corners."""
+    edges = np.linspace(mid - half, mid + half, bins + 1)
+    col = np.digitize(along, edges) - 1
+    top, bottom = np.full(bins, -np.inf), np.full(bins, np.inf)
+    ok = np.ones(bins, bool)
+    for side, out, pick in ((upper, top, np.maximum), (~upper, bottom, np.minimum)):
+        m = (col >= 0) & (col < bins) & lid_skin & side
+        pick.at(out, col[m], phi[m])
+        ok &= np.bincount(col[m], minlength=bins) >= 3            # a sparse column has no margin
+    gap = bottom - top
+    centres = 0.5 * (edges[:-1] + edges[1:])
+    gap = np.interp(centres, centres[ok], np.maximum(gap[ok], 0.0))
+    return np.interp(along, np.r_[edges[0], centres, edges[-1]], np.r_[0.0, gap, 0.0])
+
+
 def _edges(tris):
     e = np.sort(np.concatenate([tris[:, [0, 1]], tris[:, [1, 2]], tris[:, [2, 0]]]), axis=1)
     return np.unique(e, axis=0)
@@ -517,8 +537,9 @@ def _lid_controls(tpl, skin, parts, fdps, n):
     """Lid plates: {control: (dofs, anchor stiffness, eye centre, full close angle rad, weight, axis)}.
 
     A lid turns about the axis through the eyeball's centre parallel to the line of its corners;
-    the turn fades from the margin (1) to the orbit's rim (0) and to 0 at the corners, so the
-    canthi stay and nothing shears at the plate's edge.
+    the turn fades from the margin (1) to the orbit's rim (0), and along the fissure it is the
+    local opening (the angle between the margins there) over the opening at the middle, so at 1 the
+    margins meet all along and the canthi stay.
     """
     out = {}
     centre = parts["eye_l"].mean(axis=0)
@@ -532,17 +553,24 @@ def _lid_controls(tpl, skin, parts, fdps, n):
     r_margin = np.linalg.norm(fdps["3.1"] - centre)
     half = 0.5 * np.linalg.norm(outer - inner)
     mid = 0.5 * ((outer - centre) @ axis + (inner - centre) @ axis)
-    w = (np.clip((LID_REACH * r_margin - radial) / ((LID_REACH - 1.0) * r_margin), 0, 1)
-         * np.clip(1 - np.abs(along - mid) / half, 0, 1) ** 0.5 * lid)
     r1, r3 = (fdps[k] - centre for k in ("3.1", "3.3"))
     r1, r3 = r1 - (r1 @ axis) * axis, r3 - (r3 @ axis) * axis
+    turn = np.sign(np.cross(r1, r3) @ axis)
     full = abs(float(np.arctan2(np.cross(r1, r3) @ axis, r1 @ r3)))   # margin to margin, about the axis
     line_z = inner[2] + (along - (inner - centre) @ axis) / (2 * half) * (outer[2] - inner[2])
-    for which, mask in (("upper", (w > 0) & (skin[:, 2] > line_z)), ("lower", (w > 0) & (skin[:, 2] <= line_z))):
+    upper = skin[:, 2] > line_z
+    # angle of each vertex from the upper margin's middle toward the lower's, about the axis
+    flat = rel - np.outer(along, axis)
+    phi = turn * np.arctan2(np.cross(r1, flat) @ axis, flat @ r1)
+    opening = _fissure_opening(along, phi, upper, _regions(tpl, ("eyelid_l",)), mid, half) / full
+    w = (np.clip((LID_REACH * r_margin - radial) / ((LID_REACH - 1.0) * r_margin), 0, 1)
+         * np.clip(opening, 0, 1) * lid)
+    for which, mask in (("upper", (w > 0) & upper), ("lower", (w > 0) & ~upper)):
         v = np.flatnonzero(mask)
         idx = np.concatenate([v + layer * n for layer in range(3)])
         wk = np.tile(w[v], 3)
-        out[f"{which}_lid_l"] = (idx, LID_STIFFNESS * wk, centre, full, wk, axis)
+        angle = full * (1.0 if which == "upper" else LOWER_LID_SHARE)
+        out[f"{which}_lid_l"] = (idx, LID_STIFFNESS * wk, centre, angle, wk, axis)
         out[f"{which}_lid_r"] = (_mirror_dofs(tpl, idx, n), LID_STIFFNESS * wk, parts["eye_r"].mean(axis=0),
-                                 full, wk, axis * [1.0, -1.0, -1.0])   # an axis is a pseudovector
+                                 angle, wk, axis * [1.0, -1.0, -1.0])   # an axis is a pseudovector
     return out
