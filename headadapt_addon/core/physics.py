@@ -71,7 +71,7 @@ STRENGTH = {
     "frontalis_inner": 0.35, "frontalis_outer": 0.45, "corrugator": 0.4,
     "levator_labii_superioris": 0.6, "zygomaticus_minor": 0.6, "zygomaticus_major": 1.0,
     "risorius": 0.6, "depressor_anguli_oris": 0.8, "depressor_labii_inferioris": 0.8,
-    "mentalis": 1.5, "buccinator": 0.6, "nasalis": 0.4,
+    "mentalis": 3.0, "buccinator": 0.6, "nasalis": 0.4,
     "orbicularis_oris": 0.8, "orbicularis_oculi": 0.6,
     "cheek_puff": 0.8, "lip_push": 0.5, "lip_funnel": 0.6, "depressor_septi": 1.0,
 }
@@ -468,6 +468,8 @@ def _muscle_forces(tpl, rest, normals, n, muscles, sphincters):
     for mm in muscles:
         inside = _regions(tpl, mm["regions"])
         a_pt, i_pt = np.asarray(mm["attachment"]), np.asarray(mm["insertion"])
+        below = np.argmin(np.linalg.norm(rest[:n] - i_pt, axis=1))
+        i_pt = i_pt + hyp[below] - rest[below]                       # the insertion on the hypodermis
         axis = i_pt - a_pt
         length = np.linalg.norm(axis)
         rel = hyp - a_pt
