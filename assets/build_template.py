@@ -640,7 +640,7 @@ TISSUE_DEPTHS_MM = (
     ("supraglenoid L", 8.5, "supraglenoid_l"), ("supraglenoid R", 8.5, "supraglenoid_r"),
     ("gonion L", 11.5, "2.13"), ("gonion R", 11.5, "2.14"),
     ("supra-M2 L", 22.0, "supra_m2_l"), ("supra-M2 R", 22.0, "supra_m2_r"),
-    ("occlusal line L", 18.5, "buccal_l"), ("occlusal line R", 18.5, "buccal_r"),
+    ("occlusal line L", 18.5, "masseter_l"), ("occlusal line R", 18.5, "masseter_r"),
     ("sub-M2 L", 17.3, "sub_m2_l"), ("sub-M2 R", 17.3, "sub_m2_r"),
     ("cranial vault (vertex)", 5.5, "11.4"), ("cranial vault (occiput)", 5.5, "11.6"),
     ("cranial vault (crown)", 5.5, "crown_back"),
@@ -650,10 +650,18 @@ TISSUE_DEPTHS_MM = (
 
 def depth_points(src, parts, skin, fdp, marker):
     """Skin vertices of the depth landmarks that are neither FDPs nor markers (left by rule,
-    right by mirror): suborbital, lateral orbit, supraglenoid, supra/sub-M2, parietal."""
+    right by mirror): suborbital, lateral orbit, supraglenoid, supra/sub-M2, mid-masseter at
+    the occlusal line, parietal."""
     v, n = skin.v, skin.n
     f = {k: i for k, (p, i) in fdp.items() if p == "skin"}
     m = {k: i for k, (p, i) in marker.items()}
+    teeth = parts["teeth_upper"].verts[parts["teeth_upper"].verts[:, 0] > 0]
+    m2_y = teeth[:, 1].max() + 0.2 * (teeth[:, 1].min() - teeth[:, 1].max())
+
+    def lateral(z, y):
+        """The side-facing skin vertex nearest to depth y at height z."""
+        return skin.pick((n[:, 0] > 0.3) & (np.abs(v[:, 2] - z) < 0.004), -np.abs(v[:, 1] - y))
+
     pts = {
         # on the bony rims around the orbit: 1 cm below the lower lid centre, 14 mm out from 3.7
         "suborbital_l": skin.front_point(v[f["3.9"], 0], v[f["3.9"], 2] - 0.01),
@@ -662,8 +670,14 @@ def depth_points(src, parts, skin, fdp, marker):
                                      -np.abs(v[:, 0] - v[f["3.7"], 0] - 0.014)),
         "supraglenoid_l": skin.pick((n[:, 0] > 0.5) & (np.abs(v[:, 2] - v[f["10.9"], 2]) < 0.004),
                                     -np.abs(v[:, 1] - v[f["10.9"], 1] + 0.012)),
-        "supra_m2_l": skin.front_point(v[m["buccal_l"], 0], v[m["buccal_l"], 2] + 0.012),
-        "sub_m2_l": skin.front_point(v[m["buccal_l"], 0], v[m["buccal_l"], 2] - 0.014),
+        # over the middle of the masseter on the ramus, at the height of the lip corners (the
+        # occlusal line): a quarter of the way from the jaw angle (2.13) toward the lip corner
+        "masseter_l": skin.pick((n[:, 0] > 0.5) & (np.abs(v[:, 2] - v[f["8.3"], 2]) < 0.004),
+                                -np.abs(v[:, 1] - v[f["2.13"], 1] - 0.25 * (v[f["8.3"], 1] - v[f["2.13"], 1]))),
+        # above / below the second molar of the template's own teeth (a fifth of the arch's depth
+        # in front of its last tooth), on the side of the face
+        "supra_m2_l": lateral(v[m["buccal_l"], 2] + 0.012, m2_y),
+        "sub_m2_l": lateral(v[m["buccal_l"], 2] - 0.014, m2_y),
         "parietal_l": skin.pick(v[:, 0] > 0, v @ unit([1, 0.3, 1.2])),
     }
     return mirror_points(src, parts, {k: ("skin", i) for k, i in pts.items()})
