@@ -64,6 +64,7 @@ def rigid_from_fdps(part_verts, template_fdps, adapted_fdps, x_pair, y_pair, ref
 
 
 HIDDEN_REGIONS = ("mouth_interior", "eye_socket_l", "eye_socket_r")
+POCKET_REACH = 0.015          # bone points this close to the pockets' skin may end in one, m
 
 
 def _hidden(tpl):
@@ -122,11 +123,13 @@ def clear_visible_skin(tpl, skin, cranium, mandible, limit=0.48, radius=0.008, s
     thin scan brings down onto a bone rim (lids over the orbit's edge, brows): while a visible skin
     vertex near the bone has a winding number over `limit` w.r.t. the bone, the bone within
     `radius` of it steps `step` deeper (fading with distance), each bone vertex along the inward
-    normal of the skin vertex the template offset it from.
+    normal of the skin vertex the template offset it from. A step that would take a bone point
+    into a pocket of the skin (the eye socket behind the lids) slides along the pocket's lining
+    instead, or is not taken, so the bone stays inside the skin.
     """
     from scipy.spatial import cKDTree
 
-    from .geometry import vertex_normals
+    from .geometry import face_normals, vertex_normals
     from .inside import winding_numbers
     from .spatial import MeshQuery
 
@@ -139,6 +142,11 @@ def clear_visible_skin(tpl, skin, cranium, mandible, limit=0.48, radius=0.008, s
     inward = -normals[np.r_[tpl.bone_skin_index["cranium"], tpl.bone_skin_index["mandible"]]]
     near = visible[MeshQuery(bone, tris, backend="numpy").closest_points(skin[visible])[2] < 0.002]
     check = near
+    by_pocket = cKDTree(skin[_hidden(tpl)]).query(bone, distance_upper_bound=POCKET_REACH)[0] < np.inf
+    pocket_t = tpl.skin.tris[_hidden(tpl)[tpl.skin.tris].all(axis=1)]
+    pocket_q = MeshQuery(skin, pocket_t, backend="numpy")
+    pocket_n = face_normals(skin, pocket_t)
+    frozen = np.zeros(len(bone), bool)
     for _ in range(rounds):
         w = winding_numbers(skin[check], bone, tris)
         bad = check[w > limit]
@@ -150,7 +158,21 @@ def clear_visible_skin(tpl, skin, cranium, mandible, limit=0.48, radius=0.008, s
         pairs = cKDTree(skin[bad]).sparse_distance_matrix(cKDTree(bone), radius, output_type="coo_matrix")
         push = np.zeros_like(bone)
         np.add.at(push, pairs.col, (step * (1.0 - pairs.data / radius))[:, None] * inward[pairs.col])
-        bone += push
+        push[frozen] = 0.0
+        moved = bone + push
+        # a bone point by a pocket (the orbit behind the lids) stops before it leaves the skin
+        watch = np.flatnonzero(by_pocket & push.any(axis=1))
+        if len(watch):
+            out = watch[winding_numbers(moved[watch], skin, tpl.skin.tris) < 0.5]
+            if len(out):       # slide along the pocket's lining instead of into the pocket
+                face = pocket_q.closest_points(moved[out])[1]
+                n_out = pocket_n[face]
+                p = push[out]
+                p -= np.maximum(np.einsum("ij,ij->i", p, n_out), 0.0)[:, None] * n_out
+                moved[out] = bone[out] + p
+                still = out[winding_numbers(moved[out], skin, tpl.skin.tris) < 0.5]
+                moved[still], frozen[still] = bone[still], True
+        bone = moved
         check = near[cKDTree(skin[bad]).query(skin[near], distance_upper_bound=radius)[0] < np.inf]
     return bone[:n_cr], bone[n_cr:]
 
