@@ -110,6 +110,9 @@ def test_jaw_opens_the_mouth_and_lids_close_the_eye(tpl, model):
     x = model.equilibrium({"lower_lid_l": 1.0})
     assert len(model.flipped(x)) == 0
     assert tpl.skin.verts[fdp["3.1"], 2] - x[fdp["3.3"], 2] < 0.85 * gap0  # the lower lid rises (LOWER_LID_SHARE)
+    x = model.equilibrium({"upper_lid_l": 1.0, "lower_lid_l": 1.0})    # a blink: the margins meet
+    assert len(model.flipped(x)) == 0
+    assert x[fdp["3.1"], 2] - x[fdp["3.3"], 2] < 0.25 * gap0
 
 
 def test_simulated_expressions_match_the_artists_face_units(tpl, model):

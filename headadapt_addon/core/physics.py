@@ -20,7 +20,7 @@ Controls, each with an activation (0 = rest, 1 = full):
   skin follows through its springs to the bone;
 - `upper_lid_l/r`, `lower_lid_l/r` turn the lids about the eyeball's centre (the tarsal plate
   riding on the eye); at 1 the upper margin meets the lower all along the fissure, the lower
-  rises LOWER_LID_SHARE of the opening;
+  rises LOWER_LID_SHARE of the opening (the upper then stops on it);
 - `cheek_puff_l/r` push the cheeks out (air pressure in the mouth);
 - `lip_push_upper/lower` push the lips forward (the lip's own protrusion).
 Template frame (or the adapted head's, same axes), metres.
@@ -141,8 +141,10 @@ class SkinModel:
             f[hyp] += np.where(self.on_mandible[:, None], self.bone_k[:, None] * (target - rest_h), 0.0)
         for name, (idx, k, centre, full, weight, axis) in self.lids.items():
             if name in activations:
-                sign = 1.0 if name.startswith("upper") else -1.0
-                angle = (sign * full * activations[name] * weight)[:, None]
+                sign, act = (1.0 if name.startswith("upper") else -1.0), activations[name]
+                if sign > 0:                   # the upper margin stops where the risen lower one is
+                    act = min(act, 1.0 - LOWER_LID_SHARE * max(activations.get(name.replace("upper", "lower"), 0.0), 0.0))
+                angle = (sign * full * act * weight)[:, None]
                 rel = self.rest[idx] - centre                 # Rodrigues, one angle per dof
                 turned = (rel * np.cos(angle) + np.cross(axis, rel) * np.sin(angle)
                           + np.outer(rel @ axis, axis) * (1 - np.cos(angle)))
