@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from headadapt_addon.core import adapt, anatomy, spatial
+from headadapt_addon.core import adapt, anatomy, geometry, spatial
 from headadapt_addon.core.inside import winding_numbers
 from headadapt_addon.core.template import load_template
 
@@ -84,3 +84,19 @@ def test_rigid_parts_stay_rigid_and_fapus_are_remeasured(tpl, transferred):
         oris = next(s for s in ana.sphincters if s["name"] == "orbicularis_oris")
         ratio = np.linalg.norm(oris["axes"][0]) / np.linalg.norm(tpl.meta["sphincters"][0]["axes"][0])
         assert ratio == pytest.approx(ana.fapus["MW"] / tpl.meta["fapus"]["MW"], rel=1e-9)
+
+
+def test_bone_mapped_into_the_mouth_comes_out_through_its_lining(tpl):
+    """A mandible point the map puts 1 mm into the mouth bag goes back into the tissue, nearby."""
+    bag = np.flatnonzero(tpl.region == tpl.region_names.index("mouth_interior"))
+    skin = tpl.skin.verts
+    normals = geometry.vertex_normals(skin, tpl.skin.tris)
+    mandible = tpl.parts["mandible"].verts
+    gap = np.linalg.norm(mandible[:, None] - skin[bag][None], axis=2)
+    i, j = np.unravel_index(np.argmin(gap), gap.shape)        # the mandible point nearest the bag
+    mapped = mandible.copy()
+    mapped[i] = skin[bag[j]] + 0.001 * normals[bag[j]]        # 1 mm into the mouth
+    assert winding_numbers(mapped[[i]], skin, tpl.skin.tris)[0] < 0.5
+    kept = anatomy.keep_inside(tpl, mandible, mapped, skin)
+    assert winding_numbers(kept[[i]], skin, tpl.skin.tris)[0] > 0.5
+    assert np.linalg.norm(kept[i] - mapped[i]) < 0.005

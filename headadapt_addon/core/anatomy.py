@@ -78,7 +78,9 @@ def keep_inside(tpl, bone_template, bone_mapped, skin_adapted, clearance=0.0015)
     Each bone point keeps, from the template, its nearest point on the visible skin (face +
     barycentric, not the lids folded behind the eyes nor the mouth bag); where the adapted skin
     there is less than `clearance` above the mapped point (the scan is thinner than the template's
-    tissue), the point moves to `clearance` under it along the skin's normal. Template frame, m.
+    tissue), the point moves to `clearance` under it along the skin's normal. Any point by a
+    pocket of the skin (eye socket, mouth bag) that ends in it goes out through the pocket's lining
+    (the mandible's centre, the old way out, lies in the mouth). Template frame, m.
     """
     from .geometry import face_normals
     from .spatial import MeshQuery, barycentric
@@ -100,11 +102,16 @@ def keep_inside(tpl, bone_template, bone_mapped, skin_adapted, clearance=0.0015)
     from scipy.spatial import cKDTree
 
     from .inside import winding_numbers
-    near_pocket = np.flatnonzero(bad)[cKDTree(skin_adapted[hidden]).query(out[bad], distance_upper_bound=0.02)[0] < np.inf]
+    near_pocket = np.flatnonzero(cKDTree(skin_adapted[hidden]).query(out, distance_upper_bound=POCKET_REACH)[0] < np.inf)
     if len(near_pocket):
         w = winding_numbers(out[near_pocket], skin_adapted, tpl.skin.tris)
         still = near_pocket[w < 0.5]
-        if len(still):
+        if len(still):                 # out through the pocket's lining, `clearance` into the tissue
+            pocket_t = tpl.skin.tris[hidden[tpl.skin.tris].all(axis=1)]
+            lining, face, _ = MeshQuery(skin_adapted, pocket_t).closest_points(out[still])
+            out[still] = lining - clearance[still, None] * face_normals(skin_adapted, pocket_t)[face]
+            still = still[winding_numbers(out[still], skin_adapted, tpl.skin.tris) < 0.5]
+        if len(still):                 # else toward the bone's centre
             centre = np.asarray(bone_mapped).mean(axis=0)
             lo, hi = np.zeros(len(still)), np.ones(len(still))
             for _ in range(16):
