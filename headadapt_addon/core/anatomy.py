@@ -72,6 +72,11 @@ def _hidden(tpl):
     return np.isin(tpl.region, [tpl.region_names.index(r) for r in HIDDEN_REGIONS])
 
 
+def _pocket_tris(tpl, hidden):
+    """Skin triangles (k,3) of the pockets (mouth bag, eye sockets): all corners hidden."""
+    return tpl.skin.tris[hidden[tpl.skin.tris].all(axis=1)]
+
+
 def keep_inside(tpl, bone_template, bone_mapped, skin_adapted, clearance=0.0015):  # noqa: C901
     """Mapped bone points (n,3), moved where needed to at least `clearance` under the adapted skin.
 
@@ -107,7 +112,7 @@ def keep_inside(tpl, bone_template, bone_mapped, skin_adapted, clearance=0.0015)
         w = winding_numbers(out[near_pocket], skin_adapted, tpl.skin.tris)
         still = near_pocket[w < 0.5]
         if len(still):                 # out through the pocket's lining, `clearance` into the tissue
-            pocket_t = tpl.skin.tris[hidden[tpl.skin.tris].all(axis=1)]
+            pocket_t = _pocket_tris(tpl, hidden)
             lining, face, _ = MeshQuery(skin_adapted, pocket_t).closest_points(out[still])
             out[still] = lining - clearance[still, None] * face_normals(skin_adapted, pocket_t)[face]
             still = still[winding_numbers(out[still], skin_adapted, tpl.skin.tris) < 0.5]
@@ -143,14 +148,15 @@ def clear_visible_skin(tpl, skin, cranium, mandible, limit=0.48, radius=0.008, s
     n_cr = len(cranium)
     bone = np.vstack([cranium, mandible]).astype(np.float64)
     tris = np.vstack([tpl.parts["cranium"].tris, tpl.parts["mandible"].tris + n_cr])
-    visible = np.flatnonzero(~_hidden(tpl))
+    hidden = _hidden(tpl)
+    visible = np.flatnonzero(~hidden)
     normals = vertex_normals(skin, tpl.skin.tris)
     # each bone vertex deepens along the skin normal of the skin vertex it was offset from
     inward = -normals[np.r_[tpl.bone_skin_index["cranium"], tpl.bone_skin_index["mandible"]]]
     near = visible[MeshQuery(bone, tris, backend="numpy").closest_points(skin[visible])[2] < 0.002]
     check = near
-    by_pocket = cKDTree(skin[_hidden(tpl)]).query(bone, distance_upper_bound=POCKET_REACH)[0] < np.inf
-    pocket_t = tpl.skin.tris[_hidden(tpl)[tpl.skin.tris].all(axis=1)]
+    by_pocket = cKDTree(skin[hidden]).query(bone, distance_upper_bound=POCKET_REACH)[0] < np.inf
+    pocket_t = _pocket_tris(tpl, hidden)
     pocket_q = MeshQuery(skin, pocket_t, backend="numpy")
     pocket_n = face_normals(skin, pocket_t)
     frozen = np.zeros(len(bone), bool)

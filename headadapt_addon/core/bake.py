@@ -69,7 +69,7 @@ def bake(tpl, anatomy=None, kinds=("expression", "viseme", "fap"), progress=None
             if recipe.keys() & {"jaw_open", "jaw_thrust", "jaw_shift"}:
                 rot, t = model.mandible_transform(recipe)
                 for part in JAW_FOLLOWERS:
-                    moved[part] = (parts[part] - model.jaw_pivot) @ rot.T + model.jaw_pivot + t
+                    moved[part] = model.on_jaw(parts[part], rot, t)
             units = None
             if kind == "fap":
                 units = _fap_units(mpeg4.FAP_BY_NAME[name], tpl, parts, moved, fapus)

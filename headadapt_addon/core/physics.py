@@ -122,6 +122,14 @@ class SkinModel:
                          + a.get("jaw_shift", 0.0) * np.array([-1.0, 0.0, 0.0]))
         return rot, t
 
+    def on_jaw(self, points, rot, t):
+        """Points (k,3) of the mandible's rest frame carried where the jaw (rot, t) puts them, metres."""
+        return (points - self.jaw_pivot) @ rot.T + self.jaw_pivot + t
+
+    def _jaw_local(self, points, rot, t):
+        """Points (k,3) taken back into the mandible's rest frame (the inverse of on_jaw), metres."""
+        return (points - self.jaw_pivot - t) @ rot + self.jaw_pivot
+
     def equilibrium(self, activations=None):
         """Skin (epidermis) positions (n,3) at equilibrium for {control: activation}, metres."""
         activations = {k: float(v) for k, v in (activations or {}).items() if v}
@@ -137,7 +145,7 @@ class SkinModel:
         if jaw_moves:
             hyp = slice(2 * self.n, 3 * self.n)
             rest_h = self.rest[hyp]
-            target = (rest_h - self.jaw_pivot) @ rot.T + self.jaw_pivot + t
+            target = self.on_jaw(rest_h, rot, t)
             f[hyp] += np.where(self.on_mandible[:, None], self.bone_k[:, None] * (target - rest_h), 0.0)
         for name, (idx, k, centre, full, weight, axis) in self.lids.items():
             if name in activations:
@@ -169,11 +177,11 @@ class SkinModel:
         is inside sits at an opening: its way out is `outward`, its gap counts as 0."""
         (q_cr, n_cr, open_cr), (q_md, n_md, open_md), *_ = self.bone
         c_cr, f_cr, d_cr = q_cr.closest_points(pts)
-        local = (pts - self.jaw_pivot - t) @ rot + self.jaw_pivot          # into the mandible's rest frame
+        local = self._jaw_local(pts, rot, t)
         c_md, f_md, d_md = q_md.closest_points(local)
         use_md = d_md < d_cr
         dist = np.minimum(d_md, d_cr)
-        closest = np.where(use_md[:, None], (c_md - self.jaw_pivot) @ rot.T + self.jaw_pivot + t, c_cr)
+        closest = np.where(use_md[:, None], self.on_jaw(c_md, rot, t), c_cr)
         away = (pts - closest) / np.maximum(dist, 1e-12)[:, None]
         side = np.where(use_md, np.einsum("ij,ij->i", local - c_md, n_md[f_md]),
                         np.einsum("ij,ij->i", pts - c_cr, n_cr[f_cr]))
@@ -196,8 +204,7 @@ class SkinModel:
     def _winding(self, pts, rot, t):
         """Winding number (k,) of skin points (k,3) in the bone (cranium, mandible at (rot, t))."""
         _, _, v_cr, v_md, bone_t = self.bone
-        moved_md = (v_md - self.jaw_pivot) @ rot.T + self.jaw_pivot + t
-        return winding_numbers(pts, np.vstack([v_cr, moved_md]), bone_t)
+        return winding_numbers(pts, np.vstack([v_cr, self.on_jaw(v_md, rot, t)]), bone_t)
 
     def _inside(self, pts, rot, t):
         """Whether skin points (k,3) are inside the bone (cranium and the mandible at (rot, t))."""
@@ -232,7 +239,7 @@ class SkinModel:
         its distance now (distance is 1-Lipschitz)."""
         rot, t = contact.jaw
         rest = self.rest[: self.n]
-        local = (x - self.jaw_pivot - t) @ rot + self.jaw_pivot               # mandible's rest frame
+        local = self._jaw_local(x, rot, t)
         bound = np.minimum(self.bone_dist[:, 0] - np.linalg.norm(x - rest, axis=1),
                            self.bone_dist[:, 1] - np.linalg.norm(local - rest, axis=1))
         near = self.free & (bound < self.clearance)
@@ -254,7 +261,7 @@ class SkinModel:
         if not len(bad):
             return x
         rest = self.rest[: self.n]
-        home = np.where(self.on_mandible[:, None], (rest - self.jaw_pivot) @ rot.T + self.jaw_pivot + t, rest)
+        home = np.where(self.on_mandible[:, None], self.on_jaw(rest, rot, t), rest)
         home[bad] = np.where(self._inside(home[bad], rot, t)[:, None], rest[bad], home[bad])
         lo, hi = np.zeros(len(bad)), np.ones(len(bad))                 # fraction of the way home
         for _ in range(RETRACT_STEPS):
@@ -323,9 +330,7 @@ class _Contact:
 
 def _near_opening(verts, tris):
     """(f,) bool: faces with a vertex within OPENING_REACH of the mesh's open boundary (metres)."""
-    e = np.sort(np.concatenate([tris[:, [0, 1]], tris[:, [1, 2]], tris[:, [2, 0]]]), axis=1)
-    edges, count = np.unique(e, axis=0, return_counts=True)
-    rim = np.unique(edges[count == 1])
+    rim = np.flatnonzero(geometry.boundary_vertices(tris, len(verts)))
     if not len(rim):
         return np.zeros(len(tris), bool)
     d, _ = cKDTree(np.asarray(verts)[rim]).query(np.asarray(verts))
@@ -553,7 +558,8 @@ def _lid_controls(tpl, skin, parts, fdps, n):
     lid = _regions(tpl, ("eyelid_l", "eye_socket_l"))
     rel = skin - centre
     along = rel @ axis
-    radial = np.linalg.norm(rel - np.outer(along, axis), axis=1)      # distance from the axis
+    flat = rel - np.outer(along, axis)                               # across the axis
+    radial = np.linalg.norm(flat, axis=1)                            # distance from the axis
     r_margin = np.linalg.norm(fdps["3.1"] - centre)
     half = 0.5 * np.linalg.norm(outer - inner)
     mid = 0.5 * ((outer - centre) @ axis + (inner - centre) @ axis)
@@ -564,7 +570,6 @@ def _lid_controls(tpl, skin, parts, fdps, n):
     line_z = inner[2] + (along - (inner - centre) @ axis) / (2 * half) * (outer[2] - inner[2])
     upper = skin[:, 2] > line_z
     # angle of each vertex from the upper margin's middle toward the lower's, about the axis
-    flat = rel - np.outer(along, axis)
     phi = turn * np.arctan2(np.cross(r1, flat) @ axis, flat @ r1)
     opening = _fissure_opening(along, phi, upper, _regions(tpl, ("eyelid_l",)), mid, half) / full
     w = (np.clip((LID_REACH * r_margin - radial) / ((LID_REACH - 1.0) * r_margin), 0, 1)
