@@ -615,6 +615,7 @@ def build(src):
     fdp_v = {k: i for k, (p, i) in fdp.items() if p == "skin"}
     marker_v = {k: i for k, (p, i) in marker.items()}
     region = build_regions(skin, mirror, fdp_v, marker_v, extra)
+    deepen_lower_vestibule(skin, region, parts, marker_v["mentolabial_sulcus"])
     return dict(src=src, parts=parts, skin=skin, mirror=mirror, fdp=fdp, marker=marker,
                 region=region, extra=extra, eye=(eye_c, eye_r, gaze))
 
@@ -622,6 +623,39 @@ def build(src):
 # ----------------------------------------------------------------------------------------------
 # Skull: the skin offset inward by published soft-tissue depths
 # ----------------------------------------------------------------------------------------------
+
+# hm08's lower vestibule (the mouth bag between the lower lip and the gum) reaches down to 6-9 mm
+# under the skin of the chin, where the tables put the mandible 10.8 mm deep (chin-lip fold), and
+# its lower incisors' gum to 6 mm under the fold. Both hidden parts are moved back (+Y) so the bone
+# can lie at the table's depth with the skull's clearance to the cavity, and the gum behind it.
+CHIN_LIP_FOLD_MM = 10.8
+VESTIBULE_DEPTH_MM = CHIN_LIP_FOLD_MM + 2.5
+
+
+def deepen_lower_vestibule(skin, region, parts, fold):
+    """Move the mouth-bag vertices that line the chin back along +Y until VESTIBULE_DEPTH_MM under
+    the chin's skin, and tilt the lower teeth back about their incisal edge until the gum lies
+    CHIN_LIP_FOLD_MM behind the fold (skin vertex `fold`) near the midline; in place, metres."""
+    from headadapt_addon.core.spatial import MeshQuery
+
+    R, v = REGION_INDEX, skin.v
+    tris = skin.part.tris
+    outer = tris[~(region[tris] == R["mouth_interior"]).any(axis=1)]
+    bag = np.flatnonzero(region == R["mouth_interior"])
+    _, face, _ = MeshQuery(v, outer, backend="numpy").closest_points(v[bag])
+    bag = bag[(region[outer[face]] == R["chin_jaw"]).any(axis=1)]       # the lining under the chin
+    chin = MeshQuery(v, tris[(region[tris] == R["chin_jaw"]).all(axis=1)], backend="numpy")
+    for _ in range(4):                           # the chin faces -Y: a few steps settle the distance
+        v[bag, 1] += np.maximum(VESTIBULE_DEPTH_MM * 1e-3 - chin.closest_points(v[bag])[2], 0.0)
+    teeth = parts["teeth_lower"].verts
+    mid = np.abs(teeth[:, 0]) < 1e-6
+    tip_z = teeth[mid][teeth[mid, 1].argmin(), 2]                     # the incisal edge (9.11)
+    front = (np.abs(teeth[:, 0]) < 0.006) & (teeth[:, 2] < v[fold, 2] + 0.002)    # the gum by the fold
+    need = v[fold, 1] + CHIN_LIP_FOLD_MM * 1e-3 - teeth[front, 1]
+    slope = max(float(np.max(need / (tip_z - teeth[front, 2]))), 0.0)
+    below = teeth[:, 2] < tip_z
+    teeth[below, 1] += slope * (tip_z - teeth[below, 2])
+    skin.n = vertex_normals(v, skin.part.tris)
 
 # Approximate adult mean facial soft-tissue depths, mm (Rhine & Campbell 1980 style tables, as
 # given in ../shared/design/DATA.md), with the template point each is measured at. The three lip
@@ -634,7 +668,7 @@ TISSUE_DEPTHS_MM = (
     ("frontal eminence L", 4.3, "frontal_eminence_l"), ("frontal eminence R", 4.3, "frontal_eminence_r"),
     ("supraorbital L", 8.3, "4.3"), ("supraorbital R", 8.3, "4.4"),
     ("suborbital L", 5.8, "suborbital_l"), ("suborbital R", 5.8, "suborbital_r"),
-    ("inferior malar L", 16.8, "5.1"), ("inferior malar R", 16.8, "5.2"),
+    ("inferior malar L", 16.8, "inferior_malar_l"), ("inferior malar R", 16.8, "inferior_malar_r"),
     ("lateral orbit L", 10.0, "lateral_orbit_l"), ("lateral orbit R", 10.0, "lateral_orbit_r"),
     ("zygomatic arch L", 7.3, "zygion_l"), ("zygomatic arch R", 7.3, "zygion_r"),
     ("supraglenoid L", 8.5, "supraglenoid_l"), ("supraglenoid R", 8.5, "supraglenoid_r"),
@@ -646,6 +680,10 @@ TISSUE_DEPTHS_MM = (
     ("cranial vault (crown)", 5.5, "crown_back"),
     ("cranial vault (parietal L)", 5.5, "parietal_l"), ("cranial vault (parietal R)", 5.5, "parietal_r"),
 )
+
+# Not table landmarks: the cheek centres (MPEG-4 5.1/5.2, over the buccal fat) are held as deep as
+# the inferior malar, so the cheek's bone stays back behind the fat pad and the teeth.
+DEPTH_ANCHORS_MM = (("cheek centre L", 16.8, "5.1"), ("cheek centre R", 16.8, "5.2"))
 
 
 def depth_points(src, parts, skin, fdp, marker):
@@ -665,6 +703,8 @@ def depth_points(src, parts, skin, fdp, marker):
     pts = {
         # on the bony rims around the orbit: 1 cm below the lower lid centre, 14 mm out from 3.7
         "suborbital_l": skin.front_point(v[f["3.9"], 0], v[f["3.9"], 2] - 0.01),
+        # on the lower part of the malar (zygomatic) bone: 1 cm below the cheek bone (5.3)
+        "inferior_malar_l": skin.front_point(v[f["5.3"], 0], v[f["5.3"], 2] - 0.01),
         "lateral_orbit_l": skin.pick((n[:, 0] > 0.2) & (np.abs(v[:, 2] - v[f["3.7"], 2]) < 0.004)
                                      & (v[:, 1] < v[f["3.7"], 1] + 0.03),
                                      -np.abs(v[:, 0] - v[f["3.7"], 0] - 0.014)),
@@ -928,7 +968,8 @@ def assemble(src, wheel_sha256):
     depth = depth_points(src, parts, skin, T["fdp"], T["marker"])
     points.update({k: i for k, (p, i) in depth.items()})
 
-    skull, field = build_skull(T, {points[key]: mm for _, mm, key in TISSUE_DEPTHS_MM})
+    depth_at = {points[key]: mm for _, mm, key in TISSUE_DEPTHS_MM + DEPTH_ANCHORS_MM}
+    skull, field = build_skull(T, depth_at)
     cranium_q, mandible_q = cut_skull(T, skull)
     bones = {"cranium": bone_mesh(skull, cranium_q, parts["skin"]),
              "mandible": bone_mesh(skull, mandible_q, parts["skin"])}

@@ -13,12 +13,6 @@ from headadapt_addon.core import mpeg4
 from headadapt_addon.core.inside import winding_numbers
 from headadapt_addon.core.template import TEMPLATE_DIR, load_template, quads_to_tris
 
-# The tissue-depth landmarks the table cannot hold on hm08: its lower incisors (chin-lip fold) or
-# its mouth bag and teeth (cheek centres) lie shallower than the table's depth
-# (assets/template/README.md); the test checks that fact, and that the bone stops short there.
-BEHIND_THE_MOUTH = {"chin-lip fold", "inferior malar L", "inferior malar R"}
-
-
 @pytest.fixture(scope="module")
 def tpl():
     return load_template()
@@ -202,13 +196,22 @@ def test_tissue_depths_match_the_table(tpl):
     for lm in tpl.meta["tissue_depths"]:
         i = lm["vertex"]
         depth_mm = 1000 * _ray_depth(skin.verts[i], -normals[i], bone_v, bone_t)
-        if lm["name"] in BEHIND_THE_MOUTH:
-            mouth_mm = 1000 * min(_ray_depth(skin.verts[i] - 1e-4 * normals[i], -normals[i], v, t)
-                                  for v, t in mouth)
-            assert mouth_mm < lm["table_mm"] - 2.0, (lm["name"], mouth_mm)   # the table's bone would be in the mouth
-            assert 3.0 < depth_mm < lm["table_mm"], lm["name"]
-        else:
-            assert abs(depth_mm - lm["table_mm"]) <= 2.0, (lm["name"], depth_mm, lm["table_mm"])
+        assert abs(depth_mm - lm["table_mm"]) <= 2.0, (lm["name"], depth_mm, lm["table_mm"])
+        # the ray meets the bone before the mouth: no mouth lining or tooth stands in front of it
+        mouth_mm = 1000 * min(_ray_depth(skin.verts[i] - 1e-4 * normals[i], -normals[i], v, t) for v, t in mouth)
+        assert mouth_mm > depth_mm - 1.0, (lm["name"], mouth_mm, depth_mm)
+
+
+def test_depth_landmarks_on_their_bones(tpl, fdp):
+    at = {lm["name"]: tpl.skin.verts[lm["vertex"]] for lm in tpl.meta["tissue_depths"]}
+    for side, cheek, eye in (("L", "5.3", "3.9"), ("R", "5.4", "3.10")):
+        # inferior malar: on the lower malar bone, under the cheek bone (5.3/5.4) and below the
+        # suborbital point, above the mouth's corners
+        p = at[f"inferior malar {side}"]
+        assert abs(p[0] - fdp[cheek][0]) < 0.006 and fdp["8.3"][2] < p[2] < at[f"suborbital {side}"][2] < fdp[eye][2]
+    # chin-lip fold: the deepest point of the profile between the lower lip and the chin boss
+    fold, lip, boss = at["chin-lip fold"], fdp["8.2"], fdp["2.10"]
+    assert abs(fold[0]) < 1e-6 and boss[2] < fold[2] < lip[2] and fold[1] > max(lip[1], boss[1])
 
 
 def test_mandible_and_jaw_pivot(tpl, fdp):
