@@ -8,7 +8,7 @@ import tempfile
 import pytest
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
-SHARED_SCANS = ROOT.parent / "shared" / "scans"
+SHARED_SCANS = pathlib.Path(os.environ.get("HEADADAPT_SCANS", ROOT.parent / "shared" / "scans"))
 
 # Nothing a test does may touch the user's own Blender config: point Blender at a temp folder
 # before bpy is imported anywhere.
@@ -28,7 +28,8 @@ def clean_scene():
 
 @pytest.fixture(scope="session")
 def shared_scans():
-    """The third-party scans in ../shared/scans (skips when that folder is absent)."""
+    """The third-party scans in ../shared/scans or $HEADADAPT_SCANS (skips when absent)."""
     if not SHARED_SCANS.is_dir():
-        pytest.skip(f"real scans not found at {SHARED_SCANS} (they live beside the project, not in it)")
+        pytest.skip(f"real scans not found at {SHARED_SCANS} (they live beside the project, not in it; "
+                    "HEADADAPT_SCANS names another folder)")
     return SHARED_SCANS

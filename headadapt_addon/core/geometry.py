@@ -67,10 +67,14 @@ def cotan_laplacian(v, t):
     # edge vectors opposite each corner and corner angles' cotangents
     e0, e1, e2 = c - b, a - c, b - a          # opposite corners 0, 1, 2
     area2 = np.linalg.norm(np.cross(e2, -e1), axis=1)
-    safe = np.maximum(area2, 1e-300)
-    cot0 = np.einsum("ij,ij->i", -e2, e1) / safe
-    cot1 = np.einsum("ij,ij->i", -e0, e2) / safe
-    cot2 = np.einsum("ij,ij->i", -e1, e0) / safe
+    # a degenerate triangle (marching cubes makes some: zero area, or two corners at one spot) has
+    # no angles to speak of; it adds nothing, instead of cotangents of 1e300
+    longest2 = np.max([np.einsum("ij,ij->i", e, e) for e in (e0, e1, e2)], axis=0)
+    ok = area2 > 1e-12 * longest2
+    safe = np.where(ok, area2, 1.0)
+    cot0 = np.where(ok, np.einsum("ij,ij->i", -e2, e1) / safe, 0.0)
+    cot1 = np.where(ok, np.einsum("ij,ij->i", -e0, e2) / safe, 0.0)
+    cot2 = np.where(ok, np.einsum("ij,ij->i", -e1, e0) / safe, 0.0)
     i = np.concatenate([t[:, 1], t[:, 2], t[:, 0]])
     j = np.concatenate([t[:, 2], t[:, 0], t[:, 1]])
     w = 0.5 * np.concatenate([cot0, cot1, cot2])

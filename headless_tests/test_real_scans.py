@@ -1,0 +1,72 @@
+"""Real data: the template adapted onto a real head CT (skin and skull of one person).
+
+The CT and its clicks: tools/realct.py. These tests skip when ../shared/scans is absent.
+"""
+import warnings
+
+import numpy as np
+import pytest
+
+from headadapt_addon.core.inside import winding_numbers
+from headadapt_addon.core.template import load_template
+from tools import realct
+
+
+@pytest.fixture(scope="module")
+def ct(shared_scans):
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        case = realct.run(load_template(), shared_scans)
+    case.warnings = [str(w.message) for w in caught if issubclass(w.category, RuntimeWarning)]
+    return case
+
+
+def test_adapts_onto_the_real_ct_skin(ct):
+    res = ct.result
+    # the CT's marching-cubes skin has zero-area triangles: no overflow or NaN on the way
+    assert not ct.warnings, ct.warnings
+    assert not res.flagged and ct.mm == pytest.approx(1000, rel=0.2)    # the CT is in mm, head-sized
+    d = res.distances[np.isfinite(res.distances)] * ct.mm
+    # the CT covers the face from the brows to the chin and the ears: most of the visible face
+    assert len(d) > 2500
+    assert np.median(d) < 0.5 and np.percentile(d, 90) < 4.0, (np.median(d), np.percentile(d, 90))
+
+
+def test_transferred_skull_lies_on_the_persons_own_skull(ct):
+    d = ct.bone_distance_mm(ct.transferred_bone())
+    # the template skull is the table's mean person: on this real CT it lands within a few mm
+    assert len(d) > 1500
+    assert np.median(d) < 3.0 and np.percentile(d, 75) < 5.0, (np.median(d), np.percentile(d, 75))
+
+
+def test_tissue_depths_on_the_ct_are_those_of_the_transferred_skull(ct):
+    rows = [r for r in realct.tissue_depths(ct) if np.isfinite(r[2]) and np.isfinite(r[3])]
+    assert len(rows) >= 20
+    err = np.array([abs(ours - real) for _, _, real, ours in rows])
+    # the transferred skull's depth against this person's real depth at each landmark
+    assert np.median(err) < 4.0, [(n, round(real, 1), round(ours, 1)) for n, _, real, ours in rows]
+
+
+def test_eyes_sit_in_the_real_orbits(ct):
+    q = ct.bone_query()
+    reach = 35.0 / ct.mm
+    for eye in ("eye_l", "eye_r"):
+        centre = ct.anatomy.parts[eye].mean(axis=0)
+        # the CT's bone above, below, behind and on the nose side of the eye, within 35 mm
+        medial = -1.0 if eye == "eye_l" else 1.0
+        dirs = np.array([[0, 0, 1], [0, 0, -1], [0, 1, 0], [medial, 0, 0]], float)
+        hits = q.ray_cast(np.repeat(centre[None], 4, axis=0), dirs, reach, both_ways=False)
+        assert hits.hit.all(), (eye, hits.t * ct.mm)
+        assert q.closest_points(centre[None])[2][0] * ct.mm > 4.0, eye       # not in the bone
+
+
+@pytest.mark.xfail(strict=True, reason="known: on this CT (deep-set, closed eyes) ~15 lid vertices at the lateral "
+                   "canthi end in the orbit's aperture behind the mapped rim (winding 0.5-1.0); clear_visible_skin "
+                   "presses the bone deeper, which does not open the aperture (README, Limits)")
+def test_no_visible_skin_inside_the_transferred_skull(ct):
+    tpl = ct.tpl
+    visible = ~np.isin(tpl.region, [tpl.region_names.index(r) for r in realct.UNSEEN])
+    n_cr = len(ct.anatomy.parts["cranium"])
+    tris = np.vstack([tpl.parts["cranium"].tris, tpl.parts["mandible"].tris + n_cr])
+    w = winding_numbers(ct.result.verts[visible], ct.transferred_bone(), tris)
+    assert (w > 0.5).sum() == 0, np.flatnonzero(visible)[w > 0.5]
