@@ -76,6 +76,7 @@ class AdaptResult:
     calibration_info: dict
     seconds: float
     distances: np.ndarray             # (n,) distance of each adapted skin vertex to the scan, m (nan: no match)
+    scan: object = None               # the calibrated scan (template frame) with its queries
 
     def map_points(self, points):
         """Carry template-frame points (k,3) through the final adaptation map (template frame)."""
@@ -366,7 +367,7 @@ def adapt(tpl, scan_verts, scan_tris, scan_fdps, options=AdaptOptions(), markers
     result = AdaptResult(verts=verts, verts_scan=sim.inverse().apply(verts), similarity=sim, levels=levels,
                          best_level=best, functions=best_funcs, flagged=flagged, dropped=dropped,
                          calibration_info={**cal_info, "unused_fdps": unused},
-                         seconds=time.perf_counter() - t_start, distances=best_dist)
+                         seconds=time.perf_counter() - t_start, distances=best_dist, scan=scan)
     return result
 
 

@@ -65,6 +65,10 @@ def rigid_from_fdps(part_verts, template_fdps, adapted_fdps, x_pair, y_pair, ref
 
 HIDDEN_REGIONS = ("mouth_interior", "eye_socket_l", "eye_socket_r")
 POCKET_REACH = 0.015          # bone points this close to the pockets' skin may end in one, m
+EYE_REACH = 0.010             # an eye's surface is looked for this far beyond the eye, m
+EYE_TOLERANCE = 0.002         # an eye standing out of the scan by more than this goes back, m
+LID_GAP = 0.001               # an eye pushed back stops this far behind the scanned lid, m
+ORBIT_FULL, ORBIT_FADE = 0.003, 0.020   # the orbit moves with its eye out to these distances beyond it, m
 
 
 def _hidden(tpl):
@@ -195,14 +199,63 @@ def surface_point(verts, tris, ref):
     return np.asarray(ref["bary"]) @ verts[tris[ref["face"]]]
 
 
+def eye_protrusion(scan_query, eye, centre, gaze):
+    """How far (m) the front of an eye (vertices (n,3), centre, unit gaze) stands out of the scanned
+    surface: along rays from the centre through the middle of the eye's front (within ~25 degrees of
+    the gaze, where an open eye shows its cornea and a closed one its lids), the median reach of the
+    eye beyond the scan's first hit; 0 where the scan has nothing in front of the eye (a hole).
+    Not the maximum: at the lid margins an eye off by a millimetre sideways reaches through them."""
+    radial = eye - centre
+    r = np.linalg.norm(radial, axis=1)
+    front = radial @ gaze > 0.9 * r
+    if not front.any():
+        return 0.0
+    hits = scan_query.ray_cast(np.repeat(centre[None], front.sum(), axis=0), radial[front],
+                               r[front] + EYE_REACH, both_ways=False)
+    if not hits.hit.any():
+        return 0.0
+    return max(float(np.median(r[front][hits.hit] - hits.t[hits.hit])), 0.0)
+
+
+def seat_orbits(tpl, result, parts, rigid):
+    """Eyes that stand out of the scan by over EYE_TOLERANCE (closed or deep-set lids lie behind
+    where the map put the eye) go back along their gaze until LID_GAP behind it, and the orbit goes
+    with them: the eye socket's lining and the bone around the eye move by the same push, fading
+    out with distance. parts[eye] and rigid[eye] are updated; returns (skin with the sockets moved,
+    bone offsets {bone: (n,3)}), template frame, m."""
+    skin = parts["skin"].copy()
+    offsets = {b: np.zeros_like(tpl.parts[b].verts) for b in ("cranium", "mandible")}
+    if result.scan is None:
+        return skin, offsets
+    socket = np.isin(tpl.region, [tpl.region_names.index(r) for r in ("eye_socket_l", "eye_socket_r")])
+    for eye in ("eye_l", "eye_r"):
+        sim = rigid[eye]
+        centre = parts[eye].mean(axis=0)
+        radius = float(np.linalg.norm(parts[eye] - centre, axis=1).mean())
+        g0 = np.asarray(tpl.meta["eyes"][eye]["gaze"])
+        gaze = sim.rotation @ (g0 / np.linalg.norm(g0))
+        push = eye_protrusion(result.scan.query, parts[eye], centre, gaze)
+        if push <= EYE_TOLERANCE:       # within what the FDP-carried eye is off anyway (open eyes)
+            continue
+        shift = -(push + LID_GAP) * gaze
+
+        def fade(points):
+            d = np.linalg.norm(points - centre, axis=1) - radius
+            t = np.clip((d - ORBIT_FULL) / (ORBIT_FADE - ORBIT_FULL), 0.0, 1.0)
+            return (1.0 - t * t * (3.0 - 2.0 * t))[:, None] * shift
+
+        parts[eye] = parts[eye] + shift
+        rigid[eye] = dataclasses.replace(sim, translation=sim.translation + shift)
+        skin[socket] += fade(skin[socket])
+        for b in offsets:
+            offsets[b] += fade(result.map_points(tpl.parts[b].verts))
+    return skin, offsets
+
+
 def transfer(tpl, result):
     """Carry the template's anatomy onto the adapted head of an AdaptResult (template frame, m)."""
     parts = {"skin": result.verts}
     tris = {name: part.tris for name, part in tpl.parts.items()}
-    for name in ("cranium", "mandible"):          # the skull through the final map (all last-level FPs)
-        parts[name] = keep_inside(tpl, tpl.parts[name].verts, result.map_points(tpl.parts[name].verts), result.verts)
-    parts["cranium"], parts["mandible"] = clear_visible_skin(tpl, result.verts, parts["cranium"], parts["mandible"])
-
     tpl_fdps = tpl.fdp_points()
     fdps = {}
     for name, ref in tpl.meta["fdps"].items():
@@ -215,6 +268,11 @@ def transfer(tpl, result):
         sim = rigid_from_fdps(tpl.parts[name].verts, tpl_fdps, fdps, x_pair, y_pair, ref, centre)
         rigid[name] = sim
         parts[name] = sim.apply(tpl.parts[name].verts)
+    parts["skin"], offsets = seat_orbits(tpl, result, parts, rigid)
+    for name in ("cranium", "mandible"):          # the skull through the final map (all last-level FPs)
+        mapped = result.map_points(tpl.parts[name].verts) + offsets[name]
+        parts[name] = keep_inside(tpl, tpl.parts[name].verts, mapped, parts["skin"])
+    parts["cranium"], parts["mandible"] = clear_visible_skin(tpl, parts["skin"], parts["cranium"], parts["mandible"])
     for name, ref in tpl.meta["fdps"].items():
         if ref["part"] != "skin":
             fdps[name] = surface_point(parts[ref["part"]], tris[ref["part"]], ref)
