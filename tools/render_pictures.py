@@ -4,6 +4,9 @@
 
 template_front_side.jpg: front and side views, FDPs as blue dots with their ids.
 template_anatomy.jpg: see-through skin over the skull, mandible, eyes, teeth, tongue and muscles.
+demo_result.jpg: the bundled sample scan beside the template adapted onto it.
+real_ct.jpg: the template adapted onto the real headsq CT, with its transferred skull, beside the
+CT's own skin and bone (front, then side; needs ../shared/scans or $HEADADAPT_SCANS).
 """
 import argparse
 import math
@@ -141,6 +144,59 @@ def render_demo(out, tmp):
     _side_by_side([tmp / "demo.png"], out / "demo_result.jpg")
 
 
+def render_ct(out, tmp):
+    """The template adapted onto the real headsq CT (see-through skin, transferred skull) beside the
+    CT's own skin and bone, front and side, same frame and camera. Needs ../shared/scans."""
+    import os
+
+    from headadapt_addon import bridge
+    from tools import realct
+
+    scans = pathlib.Path(os.environ.get("HEADADAPT_SCANS", ROOT.parent / "shared" / "scans"))
+    if not (scans / "headsq_ct").is_dir():
+        print(f"no CT at {scans / 'headsq_ct'}: real_ct.jpg not rendered")
+        return None
+    tpl = load_template()
+    case = realct.run(tpl, scans)
+    bpy.ops.wm.read_homefile(use_empty=True, use_factory_startup=True)
+    sc = bpy.context.scene
+    _setup(sc)
+    sc.display.shading.show_cavity = False
+    sc.render.resolution_x, sc.render.resolution_y = 520, 600
+
+    def mesh(name, verts, tris, colour):
+        mat = bpy.data.materials.new(name)
+        mat.diffuse_color = colour
+        if colour[3] < 1:
+            mat.surface_render_method = "BLENDED"
+        me = bridge.new_mesh(name, verts, tris)
+        me.materials.append(mat)
+        obj = bpy.data.objects.new(name, me)
+        sc.collection.objects.link(obj)
+        return obj
+
+    n_cr = len(case.anatomy.parts["cranium"])
+    bone_t = np.vstack([tpl.parts["cranium"].tris, tpl.parts["mandible"].tris + n_cr])
+    skin_colour, bone_colour = (0.86, 0.68, 0.58, 0.22), (0.93, 0.9, 0.8, 1.0)
+    ours = [mesh("adapted skin", case.anatomy.parts["skin"], tpl.skin.tris, skin_colour),
+            mesh("transferred skull", case.transferred_bone(), bone_t, bone_colour),
+            *(mesh(e, case.anatomy.parts[e], tpl.parts[e].tris, (0.75, 0.8, 0.9, 1.0)) for e in ("eye_l", "eye_r"))]
+    real = [mesh("CT skin", case.ct_skin, case.ct_skin_tris, skin_colour),
+            mesh("CT bone", case.ct_bone, case.ct_bone_tris, bone_colour)]
+    lo, hi = case.ct_skin.min(axis=0), case.ct_skin.max(axis=0)
+    centre = np.array([0.0, 0.5 * (lo[1] + hi[1]), 0.5 * (lo[2] + hi[2])])
+    paths = []
+    for view, direction in (("front", (0, 1, 0)), ("side", (-1, 0, 0))):
+        for label, shown in (("ours", ours), ("ct", real)):
+            for o in ours + real:
+                o.hide_render = o not in shown
+            _camera(sc, centre, direction, 0.24)
+            paths.append(tmp / f"ct_{view}_{label}.png")
+            _render(paths[-1])
+    _side_by_side(paths, out / "real_ct.jpg")
+    return out / "real_ct.jpg"
+
+
 def main(argv=None):
     """Render the pictures into --out; prints their paths and sizes."""
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
@@ -203,7 +259,11 @@ def main(argv=None):
     _side_by_side([tmp / "a_front.png", tmp / "a_side.png"], out / "template_anatomy.jpg")
     # 3. the demo: the bundled sample scan, and the template adapted onto it (distance heat map)
     render_demo(out, tmp)
-    for name in ("template_front_side.jpg", "template_anatomy.jpg", "demo_result.jpg"):
+    # 4. the real CT: our adapted head and transferred skull beside the person's own
+    render_ct(out, tmp)
+    for name in ("template_front_side.jpg", "template_anatomy.jpg", "demo_result.jpg", "real_ct.jpg"):
+        if not (out / name).exists():
+            continue
         print(f"{out / name}: {(out / name).stat().st_size // 1024} kB")
 
 
