@@ -104,6 +104,20 @@ def test_curvature_excludes_the_boundary():
     assert border.sum() > 50 and not valid[border].any()
 
 
+def test_orient_outward_turns_each_inward_piece():
+    p, t = _sphere(1.0, n=2000)
+    q = p + [5.0, 0, 0]                                      # a second piece, wound inward
+    v = np.vstack([p, q])
+    tris = np.vstack([t, (t + len(p))[:, ::-1]])
+    out, turned = geometry.orient_outward(v, tris, centre=np.array([2.5, 0, 0]))
+    assert turned == 1
+    # every face now points away from its own piece's centre
+    n = geometry.face_normals(v, out)
+    centres = np.where(np.arange(len(out))[:, None] < len(t), [0, 0, 0], [5.0, 0, 0])
+    assert (np.einsum("ij,ij->i", n, v[out].mean(axis=1) - centres) > 0).all()
+    assert geometry.orient_outward(v, out, centre=np.array([2.5, 0, 0]))[1] == 0
+
+
 def test_mesh_checks_name_the_problem():
     with pytest.raises(MeshError, match="no vertices"):
         geometry.check_mesh(np.zeros((0, 3)), np.zeros((0, 3), int))

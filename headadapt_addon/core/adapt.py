@@ -176,6 +176,9 @@ def adapt(tpl, scan_verts, scan_tris, scan_fdps, options=AdaptOptions(), markers
     sim, cal_info = calibration.calibrate(given, tpl_fdps, method=options.calibration)
     sv = sim.apply(scan_verts)
     q_fdp = {k: sim.apply(v) for k, v in given.items()}
+    # normals out of the head, whatever winding the file has (pairs are matched by normals)
+    scan_tris, flipped = geometry.orient_outward(sv, scan_tris, tpl.parts["cranium"].verts.mean(axis=0))
+    cal_info = {**cal_info, "scan_pieces_turned": flipped}
     scan = _ScanSide(sv, scan_tris)
     width = float(np.ptp(tpl.skin.verts[:, 0]))
     threshold = width / 10.0

@@ -105,6 +105,26 @@ def mean_curvature(v, t):
     return H, valid
 
 
+def orient_outward(v, t, centre):
+    """(tris, flipped): the triangles (k,3) with each connected piece wound so that its normals
+    face away from `centre` (a point inside the head, same frame) on area-weighted balance, and
+    how many pieces were turned. Scanners and converters often write inward-facing windings."""
+    from scipy.sparse import csgraph
+
+    t = np.asarray(t)
+    n = len(v)
+    rows = np.repeat(np.arange(len(t)), 3)
+    inc = sparse.coo_matrix((np.ones(len(rows)), (rows, t.ravel())), shape=(len(t), n)).tocsr()
+    n_comp, label = csgraph.connected_components(inc.T @ inc, directed=False)
+    a, b, c = v[t[:, 0]], v[t[:, 1]], v[t[:, 2]]
+    outward = np.einsum("ij,ij->i", np.cross(b - a, c - a), (a + b + c) / 3.0 - centre)   # area-weighted
+    vote = np.bincount(label[t[:, 0]], weights=outward, minlength=n_comp)
+    flip = vote[label[t[:, 0]]] < 0
+    out = t.copy()
+    out[flip] = out[flip][:, ::-1]
+    return out, int((vote < 0).sum())
+
+
 def check_mesh(v, t, name="scan"):
     """Raise MeshError naming the mesh if it cannot be adapted to (empty, not triangles, bad indices, NaN)."""
     v, t = np.asarray(v), np.asarray(t)
