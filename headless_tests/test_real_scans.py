@@ -9,7 +9,7 @@ import warnings
 import numpy as np
 import pytest
 
-from headadapt_addon.core import adapt, anatomy, meshio
+from headadapt_addon.core import adapt, anatomy, geometry, meshio
 from headadapt_addon.core.inside import winding_numbers
 from headadapt_addon.core.template import load_template
 from tools import realct
@@ -29,10 +29,22 @@ def test_adapts_onto_the_real_ct_skin(ct):
     # the CT's marching-cubes skin has zero-area triangles: no overflow or NaN on the way
     assert not ct.warnings, ct.warnings
     assert not res.flagged and ct.mm == pytest.approx(1000, rel=0.2)    # the CT is in mm, head-sized
-    d = res.distances[np.isfinite(res.distances)] * ct.mm
+    tpl = ct.tpl
+    lids = np.isin(tpl.region, [tpl.region_names.index(r) for r in ("eyelid_l", "eyelid_r")])
+    d = res.distances * ct.mm
     # the CT covers the face from the brows to the chin and the ears: most of the visible face
-    assert len(d) > 2500
-    assert np.median(d) < 0.5 and np.percentile(d, 90) < 4.0, (np.median(d), np.percentile(d, 90))
+    assert np.isfinite(d).sum() > 2500
+    visible = ~np.isin(tpl.region, [tpl.region_names.index(r) for r in realct.UNSEEN])
+    away = d[np.isfinite(d) & visible & ~lids]   # the lids are closed on the CT, open on the template
+    assert np.median(away) < 0.2 and np.percentile(away, 95) < 2.0, (np.median(away), np.percentile(away, 95))
+
+
+def test_no_folds_where_the_scan_has_closed_eyes(ct, fran):
+    # both real scans have the eyes closed or smoothed over: the template's open lids fold onto
+    # them (about 90 triangles each) until relaxed
+    for tpl, res in ((ct.tpl, ct.result), fran):
+        assert res.unfolded["folded_triangles"] > 50 and res.unfolded["folded_left"] == 0
+        assert len(geometry.folded(tpl.skin.verts, res.verts, tpl.skin.tris)) == 0
 
 
 def test_transferred_skull_lies_on_the_persons_own_skull(ct):
@@ -75,9 +87,6 @@ def test_eyes_sit_in_the_real_orbits(ct):
         assert q.closest_points(centre[None])[2][0] * ct.mm > 4.0, eye       # not in the bone
 
 
-@pytest.mark.xfail(strict=True, reason="known: on this CT (deep-set, closed eyes) 4 lid vertices by the orbit's "
-                   "rim stay in the orbit's opening behind the transferred rim (winding 0.5-1.1; 15 before the "
-                   "orbits were seated behind the lids); README, Limits")
 def test_no_visible_skin_inside_the_transferred_skull(ct):
     tpl = ct.tpl
     visible = ~np.isin(tpl.region, [tpl.region_names.index(r) for r in realct.UNSEEN])
@@ -102,7 +111,11 @@ def test_adapts_onto_a_real_range_scan_wound_inward(fran):
     assert res.calibration_info["scan_pieces_turned"] == 1
     assert res.best_level >= 3 and not res.flagged
     visible = ~np.isin(tpl.region, [tpl.region_names.index(r) for r in realct.UNSEEN])
-    d = res.distances[visible]
-    d = d[np.isfinite(d)] * 1000 / res.similarity.scale          # the scan's mm
-    assert len(d) > 1200                       # the face mask: brows to chin, ear to ear
-    assert np.median(d) < 0.2 and np.percentile(d, 95) < 2.0, (np.median(d), np.percentile(d, 95))
+    lids = np.isin(tpl.region, [tpl.region_names.index(r) for r in ("eyelid_l", "eyelid_r")])
+    d = res.distances * 1000 / res.similarity.scale          # the scan's mm
+    assert (np.isfinite(d) & visible).sum() > 1200   # the face mask: brows to chin, ear to ear
+    away = d[np.isfinite(d) & visible & ~lids]
+    assert np.median(away) < 0.2 and np.percentile(away, 95) < 1.5, (np.median(away), np.percentile(away, 95))
+    # the scan's eyes are closed: the template's open lids, unfolded, stay within a few mm of them
+    on_lids = d[np.isfinite(d) & lids]
+    assert np.median(on_lids) < 3.0, np.median(on_lids)

@@ -77,6 +77,7 @@ class AdaptResult:
     seconds: float
     distances: np.ndarray             # (n,) distance of each adapted skin vertex to the scan, m (nan: no match)
     scan: object = None               # the calibrated scan (template frame) with its queries
+    unfolded: dict = None             # folded triangles after the fit, vertices relaxed, folds left
 
     def map_points(self, points):
         """Carry template-frame points (k,3) through the final adaptation map (template frame)."""
@@ -98,6 +99,7 @@ class AdaptResult:
             "calibration": self.calibration_info,
             "flagged_fdps": self.flagged,
             "dropped_fdps": self.dropped,
+            "unfolded": self.unfolded,
             "units": "E_d, E_m, E in mm^2 of the template frame (paper eq 22-24); *_mm in mm",
         }
 
@@ -366,11 +368,21 @@ def adapt(tpl, scan_verts, scan_tris, scan_fdps, options=AdaptOptions(), markers
             break
 
     verts = V + best_disp
+    # where the scan has no room for the template's detail (closed eyes under open lids) the fit
+    # folds a few triangles over: relax the displacement around them until none is folded
+    n_folded = len(geometry.folded(V, verts, tpl.skin.tris))
+    verts, moved, left = geometry.unfold(V, verts, tpl.skin.tris)
+    again = np.flatnonzero(moved & np.isfinite(best_dist))
+    if len(again):                  # the relaxed vertices' distances to the scan, measured anew
+        best_dist = best_dist.copy()
+        best_dist[again] = scan.query.closest_points(verts[again])[2]
+    unfolded = {"folded_triangles": n_folded, "vertices_relaxed": int(moved.sum()), "folded_left": left}
     say(1.0, f"done: best level {best}")
     result = AdaptResult(verts=verts, verts_scan=sim.inverse().apply(verts), similarity=sim, levels=levels,
                          best_level=best, functions=best_funcs, flagged=flagged, dropped=dropped,
                          calibration_info={**cal_info, "unused_fdps": unused},
-                         seconds=time.perf_counter() - t_start, distances=best_dist, scan=scan)
+                         seconds=time.perf_counter() - t_start, distances=best_dist, scan=scan,
+                         unfolded=unfolded)
     return result
 
 

@@ -125,6 +125,76 @@ def orient_outward(v, t, centre):
     return out, int((vote < 0).sum())
 
 
+def neighbour_mean(t, n):
+    """(n,n) sparse row-normalised vertex adjacency of a triangle mesh: A @ x is each vertex's
+    neighbours' mean (an isolated vertex gets 0)."""
+    e = np.concatenate([t[:, [0, 1]], t[:, [1, 2]], t[:, [2, 0]]])
+    e = np.unique(np.sort(e, axis=1), axis=0)
+    adj = sparse.coo_matrix((np.ones(2 * len(e)), (np.r_[e[:, 0], e[:, 1]], np.r_[e[:, 1], e[:, 0]])),
+                            shape=(n, n)).tocsr()
+    return sparse.diags(1.0 / np.maximum(np.asarray(adj.sum(axis=1)).ravel(), 1)) @ adj
+
+
+def folded(rest, x, t, sliver=0.01):
+    """Indices of triangles whose normal at x turned against their normal at rest; slivers of rest
+    (least height under `sliver` of the longest edge) have no orientation and are left out."""
+    n0 = np.cross(rest[t[:, 1]] - rest[t[:, 0]], rest[t[:, 2]] - rest[t[:, 0]])
+    n1 = np.cross(x[t[:, 1]] - x[t[:, 0]], x[t[:, 2]] - x[t[:, 0]])
+    longest = np.linalg.norm(rest[t] - rest[np.roll(t, 1, axis=1)], axis=2).max(axis=1)
+    ok = np.linalg.norm(n0, axis=1) > sliver * np.maximum(longest, 1e-12) ** 2
+    return np.flatnonzero((np.einsum("ij,ij->i", n0, n1) <= 0) & ok)
+
+
+def unfold(rest, x, t, rounds=40, steps=10):
+    """(x', moved mask, folded left): x (n,3) with its displacement from rest relaxed around the
+    triangles still folded (Jacobi steps toward the neighbours' mean displacement, on their corners
+    and a ring around them that widens every 4 rounds a fold resists) until nothing is folded or
+    `rounds` run out; then each relaxed patch goes back toward x as far as it can without a fold.
+    Same frame and unit as x; the rest of x is untouched."""
+    x = np.array(x, dtype=np.float64)
+    x0 = x.copy()
+    mean = neighbour_mean(t, len(x))
+    moved = np.zeros(len(x), bool)
+    for k in range(rounds):
+        bad = folded(rest, x, t)
+        if not len(bad):
+            break
+        ring = np.zeros(len(x), bool)
+        ring[t[bad].ravel()] = True
+        for _ in range(1 + k // 4):
+            ring |= (mean @ ring.astype(float)) > 0
+        moved |= ring
+        for _ in range(steps):
+            x[ring] = rest[ring] + (mean @ (x - rest))[ring]
+    if moved.any() and not len(folded(rest, x, t)):
+        x = _give_back(rest, x, x0, t, mean, moved)
+    return x, moved, len(folded(rest, x, t))
+
+
+def _give_back(rest, x, x0, t, mean, moved, steps=8):
+    """Each relaxed patch (a connected piece of `moved`) goes back toward its unrelaxed place x0
+    by the largest share (bisection) that folds nothing: the repair costs the fit no more than it
+    must."""
+    from scipy.sparse import csgraph
+
+    sel = np.flatnonzero(moved)
+    _, comp = csgraph.connected_components(mean[sel][:, sel], directed=False)
+    label = np.full(len(x), -1)
+    label[sel] = comp
+    lo, hi = np.zeros(comp.max() + 1), np.ones(comp.max() + 1)
+    for _ in range(steps):
+        mid = 0.5 * (lo + hi)
+        y = x.copy()
+        y[sel] += mid[comp][:, None] * (x0[sel] - x[sel])
+        bad = np.zeros(len(lo), bool)
+        corners = label[t[folded(rest, y, t)]].ravel()
+        bad[corners[corners >= 0]] = True
+        lo, hi = np.where(bad, lo, mid), np.where(bad, mid, hi)
+    y = x.copy()
+    y[sel] += lo[comp][:, None] * (x0[sel] - x[sel])
+    return y
+
+
 def check_mesh(v, t, name="scan"):
     """Raise MeshError naming the mesh if it cannot be adapted to (empty, not triangles, bad indices, NaN)."""
     v, t = np.asarray(v), np.asarray(t)
