@@ -83,6 +83,11 @@ def run_adapt(scan_path, landmarks_path, out_dir, levels=4, calibration="auto", 
             f"RMS {lv.E_d_rms_mm:6.3f} mm  E {lv.E:8.3f}  {lv.seconds:6.2f} s")
     for name, why in result.flagged.items():
         log(f"  FDP {name} flagged: {why}" + (" (dropped)" if name in result.dropped else ""))
+    if result.calibration_info.get("scan_pieces_turned"):
+        log(f"  {result.calibration_info['scan_pieces_turned']} scan piece(s) faced inward: read turned round")
+    if result.unfolded and result.unfolded["folded_triangles"]:
+        log(f"  {result.unfolded['folded_triangles']} folded triangles relaxed "
+            f"({result.unfolded['vertices_relaxed']} vertices)")
     log(f"headadapt: best level {result.best_level}; wrote {out_dir / 'adapted_head.obj'} and "
         f"{out_dir / 'report.json'} in {report['total_seconds']:.2f} s")
     if blend:

@@ -289,6 +289,11 @@ class HEADADAPT_OT_adapt(_Base, bpy.types.Operator):
         best = result.levels[result.best_level]
         msg = (f"adapted: best level {result.best_level}, {best.pairs} pairs, surface RMS "
                f"{best.E_d_rms_mm:.2f} mm, {result.seconds:.2f} s")
+        turned = result.calibration_info.get("scan_pieces_turned", 0)
+        if turned:
+            msg += f"; {turned} scan piece(s) faced inward and were read turned round"
+        if result.unfolded and result.unfolded["folded_triangles"]:
+            msg += f"; {result.unfolded['folded_triangles']} folded triangles relaxed"
         if result.flagged:
             msg += "; flagged FDPs: " + ", ".join(result.flagged)
             self.report({"WARNING"}, msg)

@@ -84,6 +84,7 @@ def test_the_whole_workflow_runs_through_bpy_ops(ui_scene):
         assert "HeadAdapt distance" in skin.data.color_attributes
         rep = json.loads(bpy.context.scene.headadapt.report_json)
         assert rep["levels"][rep["best_level"]]["E_d_rms_mm"] < 1.0
+        assert rep["unfolded"]["folded_left"] == 0 and rep["calibration"]["scan_pieces_turned"] == 0
         np.testing.assert_array_equal(_verts(scan), before)     # the scan is never changed
 
 
