@@ -1,8 +1,8 @@
 """Real data: the template adapted onto a real head CT (skin and skull of one person) and onto a
 real Cyberware range scan of a face (the kind of scan the paper adapts to).
 
-The CT and its clicks: tools/realct.py; the range scan's clicks: data/fran_fdps.json. These tests
-skip when ../shared/scans is absent.
+The CT and its clicks: tools/realct.py; the clicks on the range scan and the two busts (stress
+tests: statues, a crown, a beard): data/*_fdps.json. These tests skip when ../shared/scans is absent.
 """
 import warnings
 
@@ -119,3 +119,47 @@ def test_adapts_onto_a_real_range_scan_wound_inward(fran):
     # the scan's eyes are closed: the template's open lids, unfolded, stay within a few mm of them
     on_lids = d[np.isfinite(d) & lids]
     assert np.median(on_lids) < 3.0, np.median(on_lids)
+
+
+@pytest.fixture(scope="module")
+def nefertiti(shared_scans):
+    tpl = load_template()
+    verts, tris = meshio.read_mesh(shared_scans / "nefertiti" / "nefertiti-lowres.obj")[:2]
+    clicks = meshio.read_landmarks(realct.ROOT / "headless_tests" / "data" / "nefertiti_fdps.json")
+    res = adapt.adapt(tpl, verts, tris, clicks)
+    return tpl, res, anatomy.transfer(tpl, res)
+
+
+def test_adapts_onto_a_statue_with_a_crown(nefertiti):
+    # a stress test: a limestone bust, a crown instead of hair, 35k vertices in about mm
+    tpl, res, ana = nefertiti
+    assert res.best_level >= 3 and not res.flagged and res.unfolded["folded_left"] == 0
+    face = np.isin(tpl.region, [tpl.region_names.index(r) for r in
+                                ("forehead", "brow_l", "brow_r", "nose", "cheek_l", "cheek_r",
+                                 "upper_lip", "lower_lip", "chin_jaw")])
+    d = res.distances[face] / res.similarity.scale           # the scan's unit (about mm)
+    d = d[np.isfinite(d)]
+    assert len(d) > 1200
+    assert np.median(d) < 0.2 and np.percentile(d, 95) < 3.0, (np.median(d), np.percentile(d, 95))
+    visible = ~np.isin(tpl.region, [tpl.region_names.index(r) for r in realct.UNSEEN])
+    n_cr = len(ana.parts["cranium"])
+    tris = np.vstack([tpl.parts["cranium"].tris, tpl.parts["mandible"].tris + n_cr])
+    bone = np.vstack([ana.parts["cranium"], ana.parts["mandible"]])
+    assert (winding_numbers(ana.parts["skin"][visible], bone, tris) > 0.5).sum() == 0
+
+
+def test_adapts_onto_a_bearded_bust_in_its_own_units(shared_scans):
+    # a stress test: a low-resolution photoscan of a bowed, bearded marble head, in units of ~15 cm
+    tpl = load_template()
+    verts, tris = meshio.read_mesh(shared_scans / "demosthenes" / "demosthenes-low-res.obj")[:2]
+    clicks = meshio.read_landmarks(realct.ROOT / "headless_tests" / "data" / "demosthenes_fdps.json")
+    res = adapt.adapt(tpl, verts, tris, clicks)
+    assert 0.1 < res.similarity.scale < 0.2                     # found the unit from the clicks
+    assert res.best_level >= 3 and not res.flagged and res.unfolded["folded_left"] == 0
+    face = np.isin(tpl.region, [tpl.region_names.index(r) for r in
+                                ("forehead", "brow_l", "brow_r", "nose", "cheek_l", "cheek_r",
+                                 "upper_lip", "lower_lip", "chin_jaw")])
+    d = res.distances[face] * 1000                              # template mm
+    d = d[np.isfinite(d)]
+    assert len(d) > 1200
+    assert np.median(d) < 0.2 and np.percentile(d, 95) < 4.0, (np.median(d), np.percentile(d, 95))
