@@ -62,6 +62,28 @@ def test_tissue_depths_on_the_ct_are_those_of_the_transferred_skull(ct):
     assert np.median(err) < 4.0, [(n, round(real, 1), round(ours, 1)) for n, _, real, ours in rows]
 
 
+def test_expressions_bake_cleanly_on_the_real_ct(ct):
+    # every key on the CT's head: no visible skin inside the (moved) skull, no folded triangle,
+    # neutral reproduced (3 keys put a lid vertex in the bone before the skull's folds were relaxed)
+    from headadapt_addon.core import bake
+
+    tpl, ana = ct.tpl, ct.anatomy
+    keys, timing = bake.bake(tpl, ana)
+    model = timing["model"]
+    assert np.abs(model.equilibrium({}) - ana.parts["skin"]).max() < 1e-4
+    visible = ~np.isin(tpl.region, [tpl.region_names.index(r) for r in realct.UNSEEN])
+    n_cr = len(ana.parts["cranium"])
+    tris = np.vstack([tpl.parts["cranium"].tris, tpl.parts["mandible"].tris + n_cr])
+    for key in keys:
+        skin = key.moved.get("skin")
+        if skin is None:
+            continue
+        assert len(model.flipped(skin)) == 0, key.name
+        bone = np.vstack([ana.parts["cranium"], key.moved.get("mandible", ana.parts["mandible"])])
+        moved = visible & (np.linalg.norm(skin - ana.parts["skin"], axis=1) > 1e-5)
+        assert (winding_numbers(skin[moved], bone, tris) > 0.5).sum() == 0, key.name
+
+
 def test_eyes_sit_behind_the_closed_lids(ct):
     # the map carries the eyes 6 mm out through this person's closed lids; they go back, and their
     # orbits with them, so the eye's front stays behind the scanned lid
@@ -71,7 +93,7 @@ def test_eyes_sit_behind_the_closed_lids(ct):
         gaze = ct.anatomy.rigid[eye].rotation @ np.asarray(ct.tpl.meta["eyes"][eye]["gaze"])
         assert anatomy.eye_protrusion(ct.result.scan.query, v, centre, gaze / np.linalg.norm(gaze)) == 0.0, eye
     d = ct.bone_distance_mm(ct.transferred_bone())
-    assert np.median(d) < 2.3
+    assert np.median(d) < 2.2 and np.percentile(d, 90) < 6.0, (np.median(d), np.percentile(d, 90))
 
 
 def test_eyes_sit_in_the_real_orbits(ct):
@@ -163,3 +185,8 @@ def test_adapts_onto_a_bearded_bust_in_its_own_units(shared_scans):
     d = d[np.isfinite(d)]
     assert len(d) > 1200
     assert np.median(d) < 0.2 and np.percentile(d, 95) < 4.0, (np.median(d), np.percentile(d, 95))
+    ana = anatomy.transfer(tpl, res)           # carved eyes: the lids lie in the orbit's opening
+    visible = ~np.isin(tpl.region, [tpl.region_names.index(r) for r in realct.UNSEEN])
+    tris = np.vstack([tpl.parts["cranium"].tris, tpl.parts["mandible"].tris + len(ana.parts["cranium"])])
+    bone = np.vstack([ana.parts["cranium"], ana.parts["mandible"]])
+    assert (winding_numbers(ana.parts["skin"][visible], bone, tris) > 0.5).sum() == 0

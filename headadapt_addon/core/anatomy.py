@@ -9,8 +9,9 @@ import dataclasses
 
 import numpy as np
 
-from . import mpeg4
+from . import geometry, mpeg4
 from .calibration import Similarity
+from .inside import winding_numbers
 
 # rigid parts and the FDPs that carry them (eq 25-28): x axis (a - b), y axis (c - d), reference set
 RIGID_FDPS = {
@@ -194,6 +195,24 @@ def clear_visible_skin(tpl, skin, cranium, mandible, limit=0.48, radius=0.008, s
     return bone[:n_cr], bone[n_cr:]
 
 
+def _unrelax_under_skin(tpl, parts, pressed, radius=0.008):
+    """Where visible skin still lies inside the relaxed skull (a lid at the orbit's opening), the
+    bone within `radius` of it takes back its pressed, unrelaxed place and is cleared again."""
+    hidden = _hidden(tpl)
+    n_cr = len(parts["cranium"])
+    bone = np.vstack([parts["cranium"], parts["mandible"]])
+    tris = np.vstack([tpl.parts["cranium"].tris, tpl.parts["mandible"].tris + n_cr])
+    visible = np.flatnonzero(~hidden)
+    bad = visible[winding_numbers(parts["skin"][visible], bone, tris) > 0.5]
+    if not len(bad):
+        return parts["cranium"], parts["mandible"]
+    from scipy.spatial import cKDTree
+
+    back = cKDTree(parts["skin"][bad]).query(bone, distance_upper_bound=radius)[0] < np.inf
+    bone[back] = np.vstack([pressed["cranium"], pressed["mandible"]])[back]
+    return clear_visible_skin(tpl, parts["skin"], bone[:n_cr], bone[n_cr:])
+
+
 def surface_point(verts, tris, ref):
     """Point (3,) of a {"face", "bary"} reference on a mesh (verts (n,3), tris (k,3))."""
     return np.asarray(ref["bary"]) @ verts[tris[ref["face"]]]
@@ -269,10 +288,18 @@ def transfer(tpl, result):
         rigid[name] = sim
         parts[name] = sim.apply(tpl.parts[name].verts)
     parts["skin"], offsets = seat_orbits(tpl, result, parts, rigid)
+    pressed = {}
     for name in ("cranium", "mandible"):          # the skull through the final map (all last-level FPs)
         mapped = result.map_points(tpl.parts[name].verts) + offsets[name]
-        parts[name] = keep_inside(tpl, tpl.parts[name].verts, mapped, parts["skin"])
+        pressed[name] = keep_inside(tpl, tpl.parts[name].verts, mapped, parts["skin"])
+        # each point goes under its own skin point: neighbours pressed different ways fold the
+        # bone (orbit floors, cheeks); relax the folds, giving back as much of the press as can be
+        relaxed = geometry.unfold(tpl.parts[name].verts, pressed[name], tris[name])[0]
+        lifted = winding_numbers(relaxed, parts["skin"], tpl.skin.tris) < 0.5    # out of the skin again
+        relaxed[lifted] = pressed[name][lifted]
+        parts[name] = relaxed
     parts["cranium"], parts["mandible"] = clear_visible_skin(tpl, parts["skin"], parts["cranium"], parts["mandible"])
+    parts["cranium"], parts["mandible"] = _unrelax_under_skin(tpl, parts, pressed)
     for name, ref in tpl.meta["fdps"].items():
         if ref["part"] != "skin":
             fdps[name] = surface_point(parts[ref["part"]], tris[ref["part"]], ref)
