@@ -496,7 +496,7 @@ def build_regions(skin, mirror, fdp_v, marker_v, extra):
     """Region index per skin vertex: fixed masks for ears, mouth interior and eye sockets, the
     rest by geodesic distance to seed curves through the FDPs (nearest seed set wins), with the
     hairline and the jaw line as hard borders. Left side by rule, right side by mirror."""
-    v, n = skin.v, skin.n
+    v = skin.v
     P = lambda *names: [fdp_v[k] if k in fdp_v else marker_v[k] for k in names]  # noqa: E731
     graph = skin.graph(np.ones(len(v), bool))
 

@@ -10,7 +10,7 @@ import pytest
 
 from headadapt_addon.core import adapt as core_adapt
 from headadapt_addon.core import geometry
-from headadapt_addon.core.exceptions import HeadAdaptError, LandmarkError, MeshError
+from headadapt_addon.core.exceptions import HeadAdaptError
 from headadapt_addon.core.template import load_template
 
 MM = 1000.0

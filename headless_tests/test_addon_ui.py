@@ -1,5 +1,4 @@
 """The add-on's Blender side: landmark picking with synthetic rays, storage, panels, operators."""
-import json
 from types import SimpleNamespace
 
 import numpy as np

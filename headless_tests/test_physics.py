@@ -42,8 +42,7 @@ def _visible(tpl):
 def _check_keys(tpl, parts, keys, model):
     """No visible skin vertex inside the (moved) skull, no folded triangle, in every baked key."""
     vis = _visible(tpl)
-    n_cr = len(parts["cranium"])
-    bone_t = np.vstack([tpl.parts["cranium"].tris, tpl.parts["mandible"].tris + n_cr])
+    bone_t = tpl.skull_tris
     for key in keys:
         skin = key.moved.get("skin")
         if skin is None:

@@ -72,8 +72,7 @@ def test_expressions_bake_cleanly_on_the_real_ct(ct):
     model = timing["model"]
     assert np.abs(model.equilibrium({}) - ana.parts["skin"]).max() < 1e-4
     visible = ~np.isin(tpl.region, [tpl.region_names.index(r) for r in realct.UNSEEN])
-    n_cr = len(ana.parts["cranium"])
-    tris = np.vstack([tpl.parts["cranium"].tris, tpl.parts["mandible"].tris + n_cr])
+    tris = tpl.skull_tris
     for key in keys:
         skin = key.moved.get("skin")
         if skin is None:
@@ -112,8 +111,7 @@ def test_eyes_sit_in_the_real_orbits(ct):
 def test_no_visible_skin_inside_the_transferred_skull(ct):
     tpl = ct.tpl
     visible = ~np.isin(tpl.region, [tpl.region_names.index(r) for r in realct.UNSEEN])
-    n_cr = len(ct.anatomy.parts["cranium"])
-    tris = np.vstack([tpl.parts["cranium"].tris, tpl.parts["mandible"].tris + n_cr])
+    tris = tpl.skull_tris
     w = winding_numbers(ct.result.verts[visible], ct.transferred_bone(), tris)
     assert (w > 0.5).sum() == 0, np.flatnonzero(visible)[w > 0.5]
 
@@ -164,8 +162,7 @@ def test_adapts_onto_a_statue_with_a_crown(nefertiti):
     assert len(d) > 1200
     assert np.median(d) < 0.2 and np.percentile(d, 95) < 3.0, (np.median(d), np.percentile(d, 95))
     visible = ~np.isin(tpl.region, [tpl.region_names.index(r) for r in realct.UNSEEN])
-    n_cr = len(ana.parts["cranium"])
-    tris = np.vstack([tpl.parts["cranium"].tris, tpl.parts["mandible"].tris + n_cr])
+    tris = tpl.skull_tris
     bone = np.vstack([ana.parts["cranium"], ana.parts["mandible"]])
     assert (winding_numbers(ana.parts["skin"][visible], bone, tris) > 0.5).sum() == 0
 
@@ -187,6 +184,6 @@ def test_adapts_onto_a_bearded_bust_in_its_own_units(shared_scans):
     assert np.median(d) < 0.2 and np.percentile(d, 95) < 4.0, (np.median(d), np.percentile(d, 95))
     ana = anatomy.transfer(tpl, res)           # carved eyes: the lids lie in the orbit's opening
     visible = ~np.isin(tpl.region, [tpl.region_names.index(r) for r in realct.UNSEEN])
-    tris = np.vstack([tpl.parts["cranium"].tris, tpl.parts["mandible"].tris + len(ana.parts["cranium"])])
+    tris = tpl.skull_tris
     bone = np.vstack([ana.parts["cranium"], ana.parts["mandible"]])
     assert (winding_numbers(ana.parts["skin"][visible], bone, tris) > 0.5).sum() == 0

@@ -11,7 +11,7 @@ import pytest
 
 from headadapt_addon.core import mpeg4
 from headadapt_addon.core.inside import winding_numbers
-from headadapt_addon.core.template import TEMPLATE_DIR, load_template, quads_to_tris
+from headadapt_addon.core.template import TEMPLATE_DIR, load_template
 
 @pytest.fixture(scope="module")
 def tpl():
@@ -161,8 +161,7 @@ def test_skull_is_inside_the_skin_and_no_visible_skin_is_inside_the_skull(tpl):
         w = winding_numbers(tpl.parts[bone].verts, skin.verts, skin.tris)
         assert w.min() > 0.5, (bone, w.min())
     bone_v = np.concatenate([tpl.parts[b].verts for b in ("cranium", "mandible")])
-    bone_t = np.concatenate([tpl.parts["cranium"].tris,
-                             tpl.parts["mandible"].tris + len(tpl.parts["cranium"].verts)])
+    bone_t = tpl.skull_tris
     w = winding_numbers(skin.verts, bone_v, bone_t)
     assert w[~_hidden(tpl)].max() < 0.5
 
@@ -188,8 +187,7 @@ def test_tissue_depths_match_the_table(tpl):
     skin = tpl.skin
     normals = _vertex_normals(skin.verts, skin.tris)
     bone_v = np.concatenate([tpl.parts[b].verts for b in ("cranium", "mandible")])
-    bone_t = np.concatenate([tpl.parts["cranium"].tris,
-                             tpl.parts["mandible"].tris + len(tpl.parts["cranium"].verts)])
+    bone_t = tpl.skull_tris
     bag = tpl.region_names.index("mouth_interior")
     mouth = [(tpl.parts[t].verts, tpl.parts[t].tris) for t in ("teeth_upper", "teeth_lower")]
     mouth.append((skin.verts, skin.tris[(tpl.region[skin.tris] == bag).all(axis=1)]))

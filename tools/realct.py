@@ -93,9 +93,7 @@ def tissue_depths(case):
     normals = vertex_normals(res.verts, tpl.skin.tris)
     skin_q = MeshQuery(case.ct_skin, case.ct_skin_tris, backend="numpy")
     ct_q = case.bone_query()
-    n_cr = len(case.anatomy.parts["cranium"])
-    ours_q = MeshQuery(case.transferred_bone(), np.vstack([tpl.parts["cranium"].tris,
-                                                           tpl.parts["mandible"].tris + n_cr]), backend="numpy")
+    ours_q = MeshQuery(case.transferred_bone(), tpl.skull_tris, backend="numpy")
     reach = 40.0 / case.mm
     rows = []
     for lm in tpl.meta["tissue_depths"]:

@@ -175,8 +175,7 @@ def render_ct(out, tmp):
         sc.collection.objects.link(obj)
         return obj
 
-    n_cr = len(case.anatomy.parts["cranium"])
-    bone_t = np.vstack([tpl.parts["cranium"].tris, tpl.parts["mandible"].tris + n_cr])
+    bone_t = tpl.skull_tris
     skin_colour, bone_colour = (0.86, 0.68, 0.58, 0.22), (0.93, 0.9, 0.8, 1.0)
     ours = [mesh("adapted skin", case.anatomy.parts["skin"], tpl.skin.tris, skin_colour),
             mesh("transferred skull", case.transferred_bone(), bone_t, bone_colour),
@@ -225,7 +224,7 @@ def main(argv=None):
     skin_pts = {k: p for k, p in pts.items() if tpl.meta["fdps"][k]["part"] == "skin"}
     front = {k: p for k, p in skin_pts.items() if p[1] < centre[1] + 0.02 and not k.startswith("10.")}
     side = {k: p for k, p in skin_pts.items() if p[0] > -0.005 and (k.startswith(("10.", "11.", "2.1", "9.3", "2.13")) or p[0] > 0.04)}
-    dots = _dots(list(skin_pts.values()), labels, (0.1, 0.35, 1.0, 1), name="fdp dots")
+    _dots(list(skin_pts.values()), labels, (0.1, 0.35, 1.0, 1), name="fdp dots")
     # labels on a plane in front of the head (orthographic views: depth does not move them)
     y_front, x_side = v[:, 1].min() - 0.01, v[:, 0].max() + 0.01
     front_labels = [_label(k, [p[0] + 0.0012, y_front, p[2] - 0.0008], labels) for k, p in front.items()]

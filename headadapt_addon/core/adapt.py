@@ -15,7 +15,7 @@ import numpy as np
 from scipy.spatial import Delaunay, cKDTree
 
 from . import calibration, geometry, metrics, mpeg4, rbf, spatial
-from .exceptions import LandmarkError, MeshError
+from .exceptions import LandmarkError
 
 MM = 1000.0
 SCANNER_VISIBLE_PARTS = ("skin", "eye_l", "eye_r")
@@ -222,8 +222,6 @@ def adapt(tpl, scan_verts, scan_tris, scan_fdps, options=AdaptOptions(), markers
     face_w = _face_weights(tpl)
     seam = lip_seam(tpl)
     vert_w = tpl.region_weights[tpl.region]
-    tpl_query = spatial.MeshQuery(V, tpl.skin.tris)
-    tpl_face_n = geometry.face_normals(V, tpl.skin.tris)
     marker_names = [m for m in (markers or {}) if m in tpl.meta["markers"]]
     marker_tpl = np.array([tpl.marker_points()[m] for m in marker_names]) if marker_names else None
     marker_scan = sim.apply(np.array([markers[m] for m in marker_names])) if marker_names else None

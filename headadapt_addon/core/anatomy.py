@@ -111,7 +111,6 @@ def keep_inside(tpl, bone_template, bone_mapped, skin_adapted, clearance=0.0015)
     # (winding number) and walk any that ended in a pocket toward the bone's centre until inside
     from scipy.spatial import cKDTree
 
-    from .inside import winding_numbers
     near_pocket = np.flatnonzero(cKDTree(skin_adapted[hidden]).query(out, distance_upper_bound=POCKET_REACH)[0] < np.inf)
     if len(near_pocket):
         w = winding_numbers(out[near_pocket], skin_adapted, tpl.skin.tris)
@@ -147,12 +146,11 @@ def clear_visible_skin(tpl, skin, cranium, mandible, limit=0.48, radius=0.008, s
     from scipy.spatial import cKDTree
 
     from .geometry import face_normals, vertex_normals
-    from .inside import winding_numbers
     from .spatial import MeshQuery
 
     n_cr = len(cranium)
     bone = np.vstack([cranium, mandible]).astype(np.float64)
-    tris = np.vstack([tpl.parts["cranium"].tris, tpl.parts["mandible"].tris + n_cr])
+    tris = tpl.skull_tris
     hidden = _hidden(tpl)
     visible = np.flatnonzero(~hidden)
     normals = vertex_normals(skin, tpl.skin.tris)
@@ -198,12 +196,10 @@ def clear_visible_skin(tpl, skin, cranium, mandible, limit=0.48, radius=0.008, s
 def _unrelax_under_skin(tpl, parts, pressed, radius=0.008):
     """Where visible skin still lies inside the relaxed skull (a lid at the orbit's opening), the
     bone within `radius` of it takes back its pressed, unrelaxed place and is cleared again."""
-    hidden = _hidden(tpl)
     n_cr = len(parts["cranium"])
     bone = np.vstack([parts["cranium"], parts["mandible"]])
-    tris = np.vstack([tpl.parts["cranium"].tris, tpl.parts["mandible"].tris + n_cr])
-    visible = np.flatnonzero(~hidden)
-    bad = visible[winding_numbers(parts["skin"][visible], bone, tris) > 0.5]
+    visible = np.flatnonzero(~_hidden(tpl))
+    bad = visible[winding_numbers(parts["skin"][visible], bone, tpl.skull_tris) > 0.5]
     if not len(bad):
         return parts["cranium"], parts["mandible"]
     from scipy.spatial import cKDTree
@@ -236,15 +232,15 @@ def eye_protrusion(scan_query, eye, centre, gaze):
     return max(float(np.median(r[front][hits.hit] - hits.t[hits.hit])), 0.0)
 
 
-def seat_orbits(tpl, result, parts, rigid):
+def seat_orbits(tpl, scan, parts, rigid, mapped):
     """Eyes that stand out of the scan by over EYE_TOLERANCE (closed or deep-set lids lie behind
     where the map put the eye) go back along their gaze until LID_GAP behind it, and the orbit goes
-    with them: the eye socket's lining and the bone around the eye move by the same push, fading
-    out with distance. parts[eye] and rigid[eye] are updated; returns (skin with the sockets moved,
-    bone offsets {bone: (n,3)}), template frame, m."""
+    with them: the eye socket's lining and the bone around the eye (`mapped`: {bone: (n,3)} through
+    the map) move by the same push, fading out with distance. parts[eye] and rigid[eye] are updated;
+    returns (skin with the sockets moved, bone offsets {bone: (n,3)}), template frame, m."""
     skin = parts["skin"].copy()
-    offsets = {b: np.zeros_like(tpl.parts[b].verts) for b in ("cranium", "mandible")}
-    if result.scan is None:
+    offsets = {b: np.zeros_like(p) for b, p in mapped.items()}
+    if scan is None:
         return skin, offsets
     socket = np.isin(tpl.region, [tpl.region_names.index(r) for r in ("eye_socket_l", "eye_socket_r")])
     for eye in ("eye_l", "eye_r"):
@@ -253,7 +249,7 @@ def seat_orbits(tpl, result, parts, rigid):
         radius = float(np.linalg.norm(parts[eye] - centre, axis=1).mean())
         g0 = np.asarray(tpl.meta["eyes"][eye]["gaze"])
         gaze = sim.rotation @ (g0 / np.linalg.norm(g0))
-        push = eye_protrusion(result.scan.query, parts[eye], centre, gaze)
+        push = eye_protrusion(scan.query, parts[eye], centre, gaze)
         if push <= EYE_TOLERANCE:       # within what the FDP-carried eye is off anyway (open eyes)
             continue
         shift = -(push + LID_GAP) * gaze
@@ -267,7 +263,7 @@ def seat_orbits(tpl, result, parts, rigid):
         rigid[eye] = dataclasses.replace(sim, translation=sim.translation + shift)
         skin[socket] += fade(skin[socket])
         for b in offsets:
-            offsets[b] += fade(result.map_points(tpl.parts[b].verts))
+            offsets[b] += fade(mapped[b])
     return skin, offsets
 
 
@@ -287,11 +283,12 @@ def transfer(tpl, result):
         sim = rigid_from_fdps(tpl.parts[name].verts, tpl_fdps, fdps, x_pair, y_pair, ref, centre)
         rigid[name] = sim
         parts[name] = sim.apply(tpl.parts[name].verts)
-    parts["skin"], offsets = seat_orbits(tpl, result, parts, rigid)
+    # the skull through the final map (all last-level FPs)
+    mapped = {name: result.map_points(tpl.parts[name].verts) for name in ("cranium", "mandible")}
+    parts["skin"], offsets = seat_orbits(tpl, result.scan, parts, rigid, mapped)
     pressed = {}
-    for name in ("cranium", "mandible"):          # the skull through the final map (all last-level FPs)
-        mapped = result.map_points(tpl.parts[name].verts) + offsets[name]
-        pressed[name] = keep_inside(tpl, tpl.parts[name].verts, mapped, parts["skin"])
+    for name in mapped:
+        pressed[name] = keep_inside(tpl, tpl.parts[name].verts, mapped[name] + offsets[name], parts["skin"])
         # each point goes under its own skin point: neighbours pressed different ways fold the
         # bone (orbit floors, cheeks); relax the folds, giving back as much of the press as can be
         relaxed = geometry.unfold(tpl.parts[name].verts, pressed[name], tris[name])[0]

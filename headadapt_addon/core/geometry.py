@@ -138,11 +138,23 @@ def neighbour_mean(t, n):
 def folded(rest, x, t, sliver=0.01):
     """Indices of triangles whose normal at x turned against their normal at rest; slivers of rest
     (least height under `sliver` of the longest edge) have no orientation and are left out."""
-    n0 = np.cross(rest[t[:, 1]] - rest[t[:, 0]], rest[t[:, 2]] - rest[t[:, 0]])
-    n1 = np.cross(x[t[:, 1]] - x[t[:, 0]], x[t[:, 2]] - x[t[:, 0]])
-    longest = np.linalg.norm(rest[t] - rest[np.roll(t, 1, axis=1)], axis=2).max(axis=1)
-    ok = np.linalg.norm(n0, axis=1) > sliver * np.maximum(longest, 1e-12) ** 2
-    return np.flatnonzero((np.einsum("ij,ij->i", n0, n1) <= 0) & ok)
+    return FoldCheck(rest, t, sliver)(x)
+
+
+class FoldCheck:
+    """folded() against one rest mesh (rest (n,3), t (k,3)), its rest normals computed once: call it
+    with positions x (n,3) for the indices of the triangles folded there."""
+
+    def __init__(self, rest, t, sliver=0.01):
+        self.t = t
+        self.n0 = np.cross(rest[t[:, 1]] - rest[t[:, 0]], rest[t[:, 2]] - rest[t[:, 0]])
+        longest = np.linalg.norm(rest[t] - rest[np.roll(t, 1, axis=1)], axis=2).max(axis=1)
+        self.ok = np.linalg.norm(self.n0, axis=1) > sliver * np.maximum(longest, 1e-12) ** 2
+
+    def __call__(self, x):
+        t = self.t
+        n1 = np.cross(x[t[:, 1]] - x[t[:, 0]], x[t[:, 2]] - x[t[:, 0]])
+        return np.flatnonzero((np.einsum("ij,ij->i", self.n0, n1) <= 0) & self.ok)
 
 
 def unfold(rest, x, t, rounds=40, steps=10):
@@ -154,9 +166,10 @@ def unfold(rest, x, t, rounds=40, steps=10):
     x = np.array(x, dtype=np.float64)
     x0 = x.copy()
     mean = neighbour_mean(t, len(x))
+    folds = FoldCheck(rest, t)
     moved = np.zeros(len(x), bool)
     for k in range(rounds):
-        bad = folded(rest, x, t)
+        bad = folds(x)
         if not len(bad):
             break
         ring = np.zeros(len(x), bool)
@@ -166,12 +179,12 @@ def unfold(rest, x, t, rounds=40, steps=10):
         moved |= ring
         for _ in range(steps):
             x[ring] = rest[ring] + (mean @ (x - rest))[ring]
-    if moved.any() and not len(folded(rest, x, t)):
-        x = _give_back(rest, x, x0, t, mean, moved)
-    return x, moved, len(folded(rest, x, t))
+    if moved.any() and not len(folds(x)):
+        x = _give_back(folds, x, x0, t, mean, moved)
+    return x, moved, len(folds(x))
 
 
-def _give_back(rest, x, x0, t, mean, moved, steps=8):
+def _give_back(folds, x, x0, t, mean, moved, steps=8):
     """Each relaxed patch (a connected piece of `moved`) goes back toward its unrelaxed place x0
     by the largest share (bisection) that folds nothing: the repair costs the fit no more than it
     must."""
@@ -187,7 +200,7 @@ def _give_back(rest, x, x0, t, mean, moved, steps=8):
         y = x.copy()
         y[sel] += mid[comp][:, None] * (x0[sel] - x[sel])
         bad = np.zeros(len(lo), bool)
-        corners = label[t[folded(rest, y, t)]].ravel()
+        corners = label[t[folds(y)]].ravel()
         bad[corners[corners >= 0]] = True
         lo, hi = np.where(bad, lo, mid), np.where(bad, mid, hi)
     y = x.copy()

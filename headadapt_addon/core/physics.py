@@ -104,8 +104,7 @@ class SkinModel:
     free: np.ndarray              # (n,) vertices the non-penetration applies to
     clearance: np.ndarray         # (n,) least gap kept to the bone
     tris: np.ndarray              # (t,3) skin triangles
-    rest_tri_normal: np.ndarray   # (t,3) their normals at rest (area-weighted)
-    tri_ok: np.ndarray            # (t,) has an orientation at rest (not a sliver, see SLIVER)
+    folds: geometry.FoldCheck     # folded skin triangles against their rest orientation (slivers: SLIVER)
     adjacency: object             # (n,n) sparse, row-normalised vertex neighbours
     bone: tuple                   # cranium and mandible: (queries, face normals), verts, bone tris
 
@@ -277,9 +276,7 @@ class SkinModel:
 
     def flipped(self, x):
         """Indices of skin triangles whose normal turned against its rest normal at positions x (n,3)."""
-        t = self.tris
-        nrm = np.cross(x[t[:, 1]] - x[t[:, 0]], x[t[:, 2]] - x[t[:, 0]])
-        return np.flatnonzero((np.einsum("ij,ij->i", nrm, self.rest_tri_normal) <= 0) & self.tri_ok)
+        return self.folds(x)
 
     def _unfold(self, x, contact):
         """Relax the displacement around folded triangles (Jacobi steps toward the neighbours' mean).
@@ -394,7 +391,7 @@ def build(tpl, anatomy=None):
     skin, tris = parts["skin"], tpl.skin.tris
     n = len(skin)
     normals = geometry.vertex_normals(skin, tris)
-    bone_t = np.vstack([tpl.parts["cranium"].tris, tpl.parts["mandible"].tris + len(parts["cranium"])])
+    bone_t = tpl.skull_tris
     queries = {k: spatial.MeshQuery(parts[k], tpl.parts[k].tris, backend="numpy") for k in ("cranium", "mandible")}
     (c_cr, _, d_cr), (c_md, _, d_md) = (queries[k].closest_points(skin) for k in ("cranium", "mandible"))
     on_mandible = d_md <= d_cr                                   # a tie (a shared rim) rides the jaw
@@ -453,15 +450,11 @@ def build(tpl, anatomy=None):
 
     rest_gap = np.einsum("ij,ij->i", skin - closest, bone_fn)
     jaw = tpl.meta["jaw"]
-    tri_n = np.cross(skin[tris[:, 1]] - skin[tris[:, 0]], skin[tris[:, 2]] - skin[tris[:, 0]])
-    longest = np.linalg.norm(skin[tris] - skin[np.roll(tris, 1, axis=1)], axis=2).max(axis=1)
-    tri_ok = np.linalg.norm(tri_n, axis=1) > SLIVER * np.maximum(longest, 1e-12) ** 2   # |cross| / edge^2 = height / edge
-    adj = sparse.coo_matrix((np.ones(2 * len(e)), (np.r_[e[:, 0], e[:, 1]], np.r_[e[:, 1], e[:, 0]])), shape=(n, n)).tocsr()
-    adj = sparse.diags(1.0 / np.maximum(np.asarray(adj.sum(axis=1)).ravel(), 1)) @ adj
+    adj = geometry.neighbour_mean(tris, n)
     bone = tuple((queries[k], geometry.face_normals(parts[k], tpl.parts[k].tris),
                   _near_opening(parts[k], tpl.parts[k].tris)) for k in ("cranium", "mandible"))
     bone += (np.asarray(parts["cranium"], float), np.asarray(parts["mandible"], float), bone_t)
-    return SkinModel(bone=bone, tris=tris, rest_tri_normal=tri_n, tri_ok=tri_ok, adjacency=adj,
+    return SkinModel(bone=bone, tris=tris, folds=geometry.FoldCheck(skin, tris, SLIVER), adjacency=adj,
                      n=n, rest=rest, solve=solve, matrix=matrix, forces=forces, bone_k=bone_k, on_mandible=on_mandible,
                      jaw_pivot=np.asarray(jaw_pivot, dtype=float), jaw_axis=np.asarray(jaw["axis"]), lids=lids,
                      bone_dist=bone_dist, bone_normal=bone_fn, free=~hidden & (rest_gap > 0),

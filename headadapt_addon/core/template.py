@@ -66,6 +66,11 @@ class Template:
         """The skin mesh."""
         return self.parts["skin"]
 
+    @property
+    def skull_tris(self):
+        """Triangles (k,3) of the whole skull, for its vertices stacked cranium then mandible."""
+        return np.vstack([self.parts["cranium"].tris, self.parts["mandible"].tris + len(self.parts["cranium"].verts)])
+
     def surface_point(self, ref):
         """Point (3,) of a {"part", "face", "bary"} reference on its part, metres."""
         part = self.parts[ref["part"]]
