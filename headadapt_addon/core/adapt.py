@@ -44,6 +44,8 @@ class AdaptOptions:
     alpha: float = 1.0                  # weight of E_d in E (eq 24)
     beta: float = 0.01                  # weight of E_m in E (E_m sums over markers, E_d averages)
     stop_at_minimum: bool = True        # stop when E rises (sec 5.3)
+    bad_fit_rms_mm: float = 1.5         # seen-skin distance RMS above this is a failed fit: 3x the
+                                        # noise of a range scanner (0.1-0.5 mm), mm
 
 
 @dataclasses.dataclass
@@ -78,6 +80,7 @@ class AdaptResult:
     distances: np.ndarray             # (n,) distance of each adapted skin vertex to the scan, m (nan: no match)
     scan: object = None               # the calibrated scan (template frame) with its queries
     unfolded: dict = None             # folded triangles after the fit, vertices relaxed, folds left
+    outcome: dict = None              # how it ended: folds left, seen-skin RMS, marker RMS, warnings, ok
 
     def map_points(self, points):
         """Carry template-frame points (k,3) through the final adaptation map (template frame)."""
@@ -100,6 +103,7 @@ class AdaptResult:
             "flagged_fdps": self.flagged,
             "dropped_fdps": self.dropped,
             "unfolded": self.unfolded,
+            "outcome": self.outcome,
             "units": "E_d, E_m, E in mm^2 of the template frame (paper eq 22-24); *_mm in mm",
         }
 
@@ -222,8 +226,10 @@ def adapt(tpl, scan_verts, scan_tris, scan_fdps, options=AdaptOptions(), markers
     face_w = _face_weights(tpl)
     seam = lip_seam(tpl)
     vert_w = tpl.region_weights[tpl.region]
-    marker_names = [m for m in (markers or {}) if m in tpl.meta["markers"]]
-    marker_tpl = np.array([tpl.marker_points()[m] for m in marker_names]) if marker_names else None
+    # held-out markers: the template's named markers, or FDPs the user clicked but held out
+    known = {**tpl.fdp_points(), **tpl.marker_points()}
+    marker_names = [m for m in (markers or {}) if m in known and m not in names]
+    marker_tpl = np.array([known[m] for m in marker_names]) if marker_names else None
     marker_scan = sim.apply(np.array([markers[m] for m in marker_names])) if marker_names else None
 
     last_dist = [None]
@@ -375,13 +381,37 @@ def adapt(tpl, scan_verts, scan_tris, scan_fdps, options=AdaptOptions(), markers
         best_dist = best_dist.copy()
         best_dist[again] = scan.query.closest_points(verts[again])[2]
     unfolded = {"folded_triangles": n_folded, "vertices_relaxed": int(moved.sum()), "folded_left": left}
+    marker_rms = None
+    if marker_tpl is not None:
+        pred = marker_tpl + sum(f(marker_tpl) for f in best_funcs)
+        marker_rms = float(np.sqrt(np.mean(np.sum((pred - marker_scan) ** 2, axis=1)))) * MM
+    outcome = fit_outcome(best_dist, vert_w, left, marker_rms, flagged, options)
     say(1.0, f"done: best level {best}")
     result = AdaptResult(verts=verts, verts_scan=sim.inverse().apply(verts), similarity=sim, levels=levels,
                          best_level=best, functions=best_funcs, flagged=flagged, dropped=dropped,
                          calibration_info={**cal_info, "unused_fdps": unused},
                          seconds=time.perf_counter() - t_start, distances=best_dist, scan=scan,
-                         unfolded=unfolded)
+                         unfolded=unfolded, outcome=outcome)
     return result
+
+
+def fit_outcome(distances, weights, folds_left, marker_rms_mm, flagged, options):
+    """How a fit ended, honestly: folds left, distance RMS over the seen skin (mm), marker RMS (mm),
+    one warning line per problem, and ok (False: no folds may be left, the RMS must stay under
+    options.bad_fit_rms_mm)."""
+    seen = np.isfinite(distances) & (weights > 0)
+    rms = float(np.sqrt(np.mean(distances[seen] ** 2)) * MM) if seen.any() else float("nan")
+    warnings = [f"FDP {k}: {why}" for k, why in flagged.items()]
+    ok = True
+    if folds_left:
+        ok = False
+        warnings.append(f"{folds_left} folded triangles left in the adapted skin")
+    if not np.isfinite(rms) or rms > options.bad_fit_rms_mm:
+        ok = False
+        warnings.append(f"the adapted skin lies {rms:.2f} mm RMS from the scan over {int(seen.sum())} seen "
+                        f"vertices (limit {options.bad_fit_rms_mm:.2f} mm): the fit did not reach the scan")
+    return {"folds_left": int(folds_left), "seen_rms_mm": rms, "seen_vertices": int(seen.sum()),
+            "marker_rms_mm": marker_rms_mm, "warnings": warnings, "ok": ok}
 
 
 def lip_seam(tpl):

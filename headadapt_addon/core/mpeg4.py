@@ -116,6 +116,11 @@ FDPS: dict[str, FDP] = {row[0]: FDP(*row) for row in _FDP_ROWS}
 # The FDPs the paper's calibration (sec 3.1) needs.
 CALIBRATION_FDPS = ("2.1", "11.1", "3.7", "3.12", "8.3", "8.4", "10.9", "10.10")
 
+# What an artist clicks: the 8 points every face shows from the front (eye corners, mouth
+# corners, nose tip, chin boss), and 11 adding the subnasale and the lips' middles.
+CLICKS_8 = ("3.7", "3.11", "3.8", "3.12", "8.3", "8.4", "9.3", "2.10")
+CLICKS_11 = CLICKS_8 + ("9.15", "8.1", "8.2")
+
 
 def fdp_sort_key(name: str) -> tuple[int, int]:
     """Sort key putting FDP ids in the standard's order ("2.1" < "2.10" < "3.1")."""
