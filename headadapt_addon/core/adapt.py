@@ -12,12 +12,15 @@ import dataclasses
 import time
 
 import numpy as np
+from scipy import sparse
+from scipy.sparse.linalg import splu
 from scipy.spatial import Delaunay, cKDTree
 
 from . import calibration, geometry, metrics, mpeg4, rbf, spatial
 from .exceptions import LandmarkError
 
 MM = 1000.0
+TINY = 1e-12
 SCANNER_VISIBLE_PARTS = ("skin", "eye_l", "eye_r")
 
 
@@ -25,22 +28,35 @@ SCANNER_VISIBLE_PARTS = ("skin", "eye_l", "eye_r")
 class AdaptOptions:
     """Settings of one adaptation run (lengths in metres of the template frame)."""
     max_levels: int = 4                 # levels after level 0
-    pair_threshold: int = 500           # below: global RBF on all pairs; above: CSRBF offsets (sec 4.3)
     rho: float = 0.0                    # level-0 smoothing (eq 9), m
     support: float | None = None        # fixed CSRBF support sigma (m); default: support_factor x spacing
     calibration: str = "auto"           # "paper", "umeyama" or "auto"
-    drop_flagged: bool = True           # drop FDPs flagged as wrongly clicked and refit level 0
-    flag_mm: float = 8.0                # leave-one-out residual above which an FDP is flagged, mm
+    drop_flagged: bool = True           # drop FDPs confirmed as wrongly clicked and refit level 0
+    flag_mm: float = 8.0                # leave-one-out residual above which an FDP is a suspect, mm
+    confirm_mm: float = 12.0            # a suspect is dropped only if the surface fit leaves it this far, mm
+                                        # (people disagree by ~3 mm, a coarse fit errs by ~5; a slip is 20)
     off_surface_mm: float = 12.0        # an FDP farther than this from the scan surface is an error
     curvature_points: int = 150         # scan curvature points at level 1 (doubles per level)
-    sample_spacing: float = 0.016       # spacing of surface samples at level 1 (halves per level), m
+    sample_spacing: float = 0.016       # spacing of the CSRBF centres at level 1 (halves per level), m
+    min_sample_spacing: float = 0.002   # finest centre spacing, m
+    support_factor: float = 3.0         # CSRBF support = this x the level's spacing
+    reach_factor: float = 1.0           # closest-point pairs are kept within this x width/10 at level 1 (halving)
+    min_reach: float = 0.002            # closest-point pairs are kept within threshold/2^(k-1), at least this, m
     use_feature_mesh: bool = True       # pairs from feature-mesh subdivision (sec 4.1, Kahler et al.)
     use_curvature: bool = True          # pairs from the scan's mean-curvature search (sec 4.1, appendix)
     curvature_reach: float = 0.004      # farthest a curvature point may be from the template, m
+    feature_weight: float = 1.0         # weight of a feature-mesh pair (a surface pair weighs 1)
+    curvature_weight: float = 1.0       # weight of a curvature pair
+    affine_iterations: int = 8          # ICP rounds of the whole-skin affine map before the clicks' RBF
+    icp_iterations: int = 3             # closest-point pairing and refit rounds per level
+    stiffness: float = 0.3              # smoothness of a level: ridge on its CSRBF coefficients, relative
+                                        # to the data weight a centre carries (nricp's stiffness, in effect)
+    stiffness_decay: float = 0.5        # the stiffness per level falls by this factor
+    robust_scale: float = 0.5           # Cauchy weight scale of a surface pair, x the level's reach
+    click_weight: float = 20.0          # a click weighs as much as this many surface pairs at level 1
+    click_decay: float = 0.25           # and this factor less at each finer level (evidence, not law)
     seam_band: float = 0.004            # no pairs within this of the inner-lip seam (template frame), m
-    min_sample_spacing: float = 0.002   # finest surface-sample spacing, m
-    thin_pairs: float = 0.5             # drop pairs closer than this x the level's spacing (0: keep all)
-    support_factor: float = 3.0         # CSRBF support = this x the level's sample spacing (halves per level)
+    seam_weight: float = 20.0           # weight holding the seam where the level before put it
     alpha: float = 1.0                  # weight of E_d in E (eq 24)
     beta: float = 0.01                  # weight of E_m in E (E_m sums over markers, E_d averages)
     stop_at_minimum: bool = True        # stop when E rises (sec 5.3)
@@ -161,11 +177,253 @@ class _ScanSide:
         return self._curv
 
 
+@dataclasses.dataclass
+class Pairs:
+    """Feature-point pairs: template points at rest (k,3), their targets (k,3), weights (k,)."""
+    p: np.ndarray
+    q: np.ndarray
+    w: np.ndarray
+
+    @staticmethod
+    def empty():
+        return Pairs(np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0))
+
+    def __len__(self):
+        return len(self.p)
+
+    def __add__(self, other):
+        return Pairs(np.vstack([self.p, other.p]), np.vstack([self.q, other.q]), np.concatenate([self.w, other.w]))
+
+
+class _Fit:
+    """What the level loop shares: template, scan, options, the fitted level functions so far."""
+
+    def __init__(self, tpl, scan, options, threshold):
+        self.tpl, self.scan, self.options, self.threshold = tpl, scan, options, threshold
+        self.V = tpl.skin.verts
+        self.tris = tpl.skin.tris
+        self.vert_w = tpl.region_weights[tpl.region]
+        self.face_w = _face_weights(tpl)
+        self.seam = lip_seam(tpl)
+        self.near_seam = cKDTree(self.V[self.seam]).query(self.V, distance_upper_bound=options.seam_band)[0] < np.inf
+        self.functions = []
+        # umbrella Laplacian of the skin (x_i minus its neighbours' mean) for the smoothness term
+        self.laplacian = (sparse.identity(len(self.V), format="csr") - geometry.neighbour_mean(self.tris, len(self.V))).tocsr()
+
+    def reach(self, k):
+        """How far a closest-point pair may reach at level k (halving per level), m."""
+        return max(self.options.reach_factor * self.threshold / 2 ** (k - 1), self.options.min_reach)
+
+    def displacement(self, x, functions=None):
+        fs = self.functions if functions is None else functions
+        return sum((f(x) for f in fs), np.zeros_like(np.asarray(x, dtype=np.float64)))
+
+    def current(self, functions=None):
+        return self.V + self.displacement(self.V, functions)
+
+
+def global_rbf(P, Q, rho=0.0):
+    """Level 0 (sec 3.2): the global RBF phi(r) = r with an affine part and smoothing rho, taking the
+    template's FDPs P (m,3) onto the clicked ones Q (m,3); returns the displacement function."""
+    return rbf.fit_rbf(P, Q - P, rho=rho)
+
+
+class AffineMap:
+    """The displacement x -> (M x + t) - x of an affine map (a level-0 function like the others)."""
+
+    def __init__(self, matrix, shift):
+        self.matrix, self.shift = matrix, shift
+
+    def __call__(self, x):
+        x = np.atleast_2d(np.asarray(x, dtype=np.float64))
+        return x @ (self.matrix - np.eye(3)).T + self.shift
+
+
+def global_affine(fit, clicks, reach, iterations, ridge=1e-3):
+    """Level 0, first half: the affine map that best takes the whole template skin onto the scan
+    (closest points, robust weights) and the clicks onto their places, by a few ICP rounds from the
+    calibrated pose. The clicks sit on the front of the face and cannot say how deep or wide the
+    head is; the scan can. The map's linear part is held near the identity by a small ridge."""
+    centre = fit.V.mean(axis=0)
+    fit.functions = [AffineMap(np.eye(3), np.zeros(3))]
+    for _ in range(iterations):
+        pairs = surface_pairs(fit, reach) + clicks
+        X = np.c_[pairs.p - centre, np.ones(len(pairs))]
+        XtW = X.T * pairs.w
+        reg = ridge * pairs.w.sum() * np.diag([np.mean((fit.V - centre) ** 2)] * 3 + [0.0])
+        D = np.linalg.solve(XtW @ X + reg, XtW @ (pairs.q - pairs.p))     # displacement, affine in x
+        matrix = np.eye(3) + D[:3].T
+        fit.functions = [AffineMap(matrix, D[3] - D[:3].T @ centre)]
+    return fit.functions[0]
+
+
+def feature_mesh_pairs(fit, mesh, reach):
+    """Pairs from feature-mesh subdivision (sec 4.1, Kahler et al.): the deformed template and the scan
+    share the feature mesh (its vertices are FP pairs), so one ray from each live triangle's
+    barycentre along its normal meets both surfaces: a new pair, and the triangle splits in three.
+    `mesh` is (fm_q scan-side vertices, fm_t triangles, dead mask) and is updated in place."""
+    fm_q, fm_t, dead = mesh["q"], mesh["t"], mesh["dead"]
+    live = np.flatnonzero(~dead)
+    if not len(live):
+        return Pairs.empty()
+    cur = fit.current()
+    cur_query = spatial.MeshQuery(cur, fit.tris)
+    cur_n = geometry.face_normals(cur, fit.tris)
+    tri = fm_t[live]
+    bq = fm_q[tri].mean(axis=1)
+    nq = geometry.face_normals(fm_q, tri)
+    size = np.linalg.norm(fm_q[tri] - bq[:, None], axis=2).max(axis=1)
+    lim = np.minimum(0.5 * size, reach)
+    ht = cur_query.ray_cast(bq, nq, lim)
+    hs = fit.scan.query.ray_cast(bq, nq, lim)
+    ft, fs = np.where(ht.hit, ht.face, 0), np.where(hs.hit, hs.face, 0)
+    ok = ht.hit & hs.hit & (fit.face_w[ft] > 0) & ~fit.scan.boundary_faces[fs]
+    ok &= np.einsum("ij,ij->i", cur_n[ft], fit.scan.face_normals[fs]) > 0.5
+    dead[live[~ok]] = True
+    acc = live[ok]
+    if not len(acc):
+        return Pairs.empty()
+    tp = np.einsum("ij,ijk->ik", ht.bary[ok], fit.V[fit.tris[ft[ok]]])
+    base = len(fm_q)
+    idx = base + np.arange(len(acc))
+    a, b, c = fm_t[acc, 0], fm_t[acc, 1], fm_t[acc, 2]
+    fm_t[acc] = np.c_[a, b, idx]
+    mesh["q"] = np.vstack([fm_q, hs.point[ok]])
+    mesh["t"] = np.vstack([fm_t, np.c_[b, c, idx], np.c_[c, a, idx]])
+    mesh["dead"] = np.concatenate([dead, np.zeros(2 * len(acc), bool)])
+    return Pairs(tp, hs.point[ok], np.full(len(tp), fit.options.feature_weight))
+
+
+def curvature_pairs(fit, face_box, count, reach, spread):
+    """Pairs from the scan's mean-curvature extremes (sec 4.1, appendix: Meyer et al.) inside the
+    paper's face box, `spread` apart, matched to the current template by rays along the scan normal."""
+    scan = fit.scan
+    H, valid = scan.curvature(face_box)
+    cand = np.flatnonzero(valid & ~_near_boundary(scan) & face_box)
+    if not len(cand):
+        return Pairs.empty()
+    order = cand[np.argsort(-np.abs(H[cand]))]
+    src = order[_spread(scan.verts[order[: count * 6]], spread)[:count]]
+    cur = fit.current()
+    hit = spatial.MeshQuery(cur, fit.tris).ray_cast(scan.verts[src], scan.vertex_normals[src], reach)
+    f = np.where(hit.hit, hit.face, 0)
+    ok = hit.hit & (fit.face_w[f] > 0)
+    ok &= np.einsum("ij,ij->i", geometry.face_normals(cur, fit.tris)[f], scan.vertex_normals[src]) > 0.7
+    tp = np.einsum("ij,ijk->ik", hit.bary[ok], fit.V[fit.tris[f[ok]]])
+    return Pairs(tp, scan.verts[src[ok]], np.full(len(tp), fit.options.curvature_weight))
+
+
+def surface_pairs(fit, reach):
+    """Closest-point pairs (non-rigid ICP): each seen template vertex to its nearest scan point, kept
+    when within `reach`, the normals agree within 60 degrees and the point is not on a hole's
+    border; weighted by region and by a robust (Cauchy) weight on the distance."""
+    cur = fit.current()
+    normals = geometry.vertex_normals(cur, fit.tris)
+    use = np.flatnonzero((fit.vert_w > 0) & ~fit.near_seam)
+    q, f, d = fit.scan.query.closest_points(cur[use])
+    ok = (d < reach) & ~fit.scan.boundary_faces[f]
+    ok &= np.einsum("ij,ij->i", normals[use], fit.scan.face_normals[f]) > 0.5
+    w = fit.vert_w[use] / (1.0 + (d / (fit.options.robust_scale * reach)) ** 2)
+    return Pairs(fit.V[use[ok]], q[ok], w[ok])
+
+
+def csrbf_level(fit, pairs, sigma, stiffness):
+    """One level's offset function (sec 3.3) fitted to the pairs with a smoothness term: the CSRBF
+    o(x) = sum_j c_j phi_sigma(|x - p_j|) on centres spread over the template skin sigma/support_factor
+    apart, with c minimising sum_i w_i |f(p_i) + o(p_i) - q_i|^2 + lambda sum_j |c_j|^2, where
+    lambda = stiffness x the mean data weight a centre carries (so it means the same at every level).
+    Returns (the CSRBF, its coefficient system's size)."""
+    centres = fit.V[_spread(fit.V, sigma / fit.options.support_factor)]
+    tree = cKDTree(centres)
+
+    def basis(points):
+        res = cKDTree(points).sparse_distance_matrix(tree, sigma, output_type="ndarray")
+        return sparse.csr_matrix((rbf.wendland(res["v"], sigma), (res["i"], res["j"])),
+                                 shape=(len(points), len(centres)))
+
+    phi = basis(pairs.p)
+    resid = pairs.q - (pairs.p + fit.displacement(pairs.p))
+    A = (phi.T @ sparse.diags(pairs.w) @ phi).tocsc()
+    # smoothness: the bending (umbrella operator applied twice is too costly; once, on the offsets at
+    # the skin's vertices) of the offset field over the template skin; affine-like offsets cost little
+    # the bending of the whole displacement (levels below included), so a level may undo what the
+    # clicks' interpolation bent where the scan does not ask for it
+    bend = fit.laplacian @ basis(fit.V)
+    R = (bend.T @ bend).tocsc()
+    lam = stiffness * A.diagonal().sum() / max(R.diagonal().sum(), TINY)
+    A = A + lam * R + 1e-6 * lam * sparse.identity(len(centres), format="csc")
+    rhs = phi.T @ (pairs.w[:, None] * resid) - lam * (bend.T @ (fit.laplacian @ fit.displacement(fit.V)))
+    coef = splu(A.tocsc(), permc_spec="MMD_AT_PLUS_A").solve(np.ascontiguousarray(rhs))
+    zero = np.zeros((len(centres), 3))
+    return rbf.CSRBF(centres, sigma, zero, np.zeros((len(centres), 3, 3)), coef, A)
+
+
+def level_zero(fit, clicks):
+    """Level 0 (sec 3.2): the whole-skin affine map fitted to the scan and the clicks (global_affine),
+    or, when that is switched off, the paper's global RBF through the clicks."""
+    o = fit.options
+    if o.affine_iterations:
+        global_affine(fit, Pairs(clicks.p, clicks.q, clicks.w * o.click_weight),
+                      o.reach_factor * fit.threshold, o.affine_iterations)
+    else:
+        fit.functions = [global_rbf(clicks.p, clicks.q, o.rho)]
+
+
+def fit_level(fit, clicks, k, fixed=None):
+    """Level k (sec 4) as non-rigid ICP: a few rounds of closest-point pairs plus the level's fixed
+    pairs (feature mesh, curvature), the clicks as soft pairs and the lip seam's anchors, each
+    round refitting the level's CSRBF (csrbf_level). Returns (the last round's pairs, sigma)."""
+    o = fit.options
+    sigma = o.support or o.support_factor * max(o.sample_spacing / 2 ** (k - 1), o.min_sample_spacing)
+    stiffness = o.stiffness * o.stiffness_decay ** (k - 1)
+    fixed = Pairs.empty() if fixed is None else fixed
+    far = cKDTree(fit.V[fit.seam]).query(fixed.p, distance_upper_bound=o.seam_band)[0] == np.inf
+    fixed = Pairs(fixed.p[far], fixed.q[far], fixed.w[far])
+    # the inner-lip seam is anchored where the previous level put it, so the lips stay closed
+    anchors = Pairs(fit.V[fit.seam], fit.current()[fit.seam], np.full(len(fit.seam), o.seam_weight))
+    # clicks are evidence, not law: their weight falls per level so the surface decides the detail
+    soft = Pairs(clicks.p, clicks.q, clicks.w * o.click_weight * o.click_decay ** (k - 1))
+    below = list(fit.functions)
+    for _ in range(o.icp_iterations):
+        pairs = surface_pairs(fit, fit.reach(k)) + fixed + soft + anchors
+        fit.functions = below + [csrbf_level(fit, pairs, sigma, stiffness)]
+    return pairs, sigma
+
+
+def check_clicks(fit, names, P, Q, options, weights):
+    """Wrong-click detection (sec 8): an FDP whose leave-one-out residual at level 0 stands out is a
+    suspect; it is dropped only if a coarse fit to the scan's surface without it still leaves the
+    click farther than options.confirm_mm from its template point, so a right click on a feature
+    the others cannot predict (the nose tip) is kept. Returns {name: reason} of the clicks to drop."""
+    loo = _loo_residuals(P, Q - P) * MM
+    median = float(np.median(loo))
+    dnn = np.sort(np.linalg.norm(P[:, None] - P[None], axis=2), axis=1)[:, 1] * MM
+    limit = np.maximum.reduce([np.full(len(loo), options.flag_mm), 4 * median * np.ones(len(loo)), 0.6 * dnn])
+    suspects = [i for i in np.argsort(-loo) if loo[i] > limit[i]]
+    if not suspects:
+        return {}
+    # at most so many that calibration keeps what it needs
+    suspects = suspects[:max(0, len(names) - calibration.MIN_FDPS)]
+    keep = np.ones(len(names), bool)
+    keep[suspects] = False
+    others = Pairs(P[keep], Q[keep], weights[keep])
+    level_zero(fit, others)
+    fit_level(fit, others, 1)
+    where = P + fit.displacement(P)
+    out = {}
+    for i in suspects:
+        off = float(np.linalg.norm(where[i] - Q[i]) * MM)
+        if off > options.confirm_mm:
+            out[names[i]] = (f"{off:.1f} mm from where the scan's surface puts it (leave-one-out residual "
+                             f"{loo[i]:.1f} mm, limit {limit[i]:.1f} mm): probably clicked at the wrong spot")
+    return out
+
+
 def adapt(tpl, scan_verts, scan_tris, scan_fdps, options=AdaptOptions(), markers=None, progress=None):
     """Adapt the template skin onto a scan; scan and FDPs in the scan's frame/unit; returns AdaptResult.
 
-    scan_fdps: {FDP id: (3,)} clicked on the scan. markers: optional {marker name: (3,)} on the
-    scan (held out, for E_m). progress: optional callable(fraction 0..1, message).
+    scan_fdps: {FDP id: (3,)} clicked on the scan. markers: optional {marker name or held-out FDP id:
+    (3,)} on the scan (for E_m). progress: optional callable(fraction 0..1, message).
     """
     t_start = time.perf_counter()
     say = progress or (lambda f, msg: None)
@@ -188,6 +446,7 @@ def adapt(tpl, scan_verts, scan_tris, scan_fdps, options=AdaptOptions(), markers
     scan = _ScanSide(sv, scan_tris)
     width = float(np.ptp(tpl.skin.verts[:, 0]))
     threshold = width / 10.0
+    fit = _Fit(tpl, scan, options, threshold)
 
     # FDPs must lie on the scan
     names = list(q_fdp)
@@ -198,184 +457,77 @@ def adapt(tpl, scan_verts, scan_tris, scan_fdps, options=AdaptOptions(), markers
             raise LandmarkError(f"FDP {k} ({mpeg4.FDPS[k].label}) is {d * MM:.1f} mm from the scan surface "
                                 f"after calibration: landmarks must be picked on this scan (wrong file or unit?)")
 
-    # 2. level 0 (sec 3.2) with wrong-click detection
+    # 2. level 0 (sec 3.2), after wrong-click detection
     say(0.08, "level 0: global RBF on the FDPs")
     t0 = time.perf_counter()
     P = np.array([tpl_fdps[k] for k in names])
     Q = np.array([q_fdp[k] for k in names])
-    loo = _loo_residuals(P, Q - P) * MM
-    median = float(np.median(loo))
-    dnn = np.sort(np.linalg.norm(P[:, None] - P[None], axis=2), axis=1)[:, 1] * MM   # isolation of each FDP
-    limit = np.maximum.reduce([np.full(len(loo), options.flag_mm), 4 * median * np.ones(len(loo)), 0.6 * dnn])
-    flagged = {k: f"leave-one-out residual {r:.1f} mm (median {median:.1f} mm, limit {lim:.1f} mm): "
-                  "probably clicked at the wrong spot"
-               for k, r, lim in zip(names, loo, limit) if r > lim}
+    click_w = np.ones(len(names))
+    flagged = check_clicks(fit, names, P, Q, options, click_w)
     dropped = []
     if flagged and options.drop_flagged:
         keep = np.array([k not in flagged for k in names])
         dropped = [k for k in names if k in flagged]
         names = [k for k in names if k not in flagged]
-        P, Q = P[keep], Q[keep]
+        P, Q, click_w = P[keep], Q[keep], click_w[keep]
     Q = _closed_mouth(names, P, Q)
-    f0 = rbf.fit_rbf(P, Q - P, rho=options.rho)
-    functions = [f0]
-    V = tpl.skin.verts
-    disp = f0(V)
-    pairs_p, pairs_q = P, Q
+    V = fit.V
+    clicks = Pairs(P, Q, click_w)
+    level_zero(fit, clicks)
 
-    face_w = _face_weights(tpl)
-    seam = lip_seam(tpl)
-    vert_w = tpl.region_weights[tpl.region]
     # held-out markers: the template's named markers, or FDPs the user clicked but held out
     known = {**tpl.fdp_points(), **tpl.marker_points()}
     marker_names = [m for m in (markers or {}) if m in known and m not in names]
     marker_tpl = np.array([known[m] for m in marker_names]) if marker_names else None
     marker_scan = sim.apply(np.array([markers[m] for m in marker_names])) if marker_names else None
 
-    last_dist = [None]
-
-    def evaluate(disp_now):
-        cur = V + disp_now
-        de = metrics.distance_error(cur, geometry.vertex_normals(cur, tpl.skin.tris), scan.query,
-                                    scan.face_normals, vert_w, threshold, scan.boundary_faces)
+    def evaluate():
+        cur = fit.current()
+        de = metrics.distance_error(cur, geometry.vertex_normals(cur, fit.tris), scan.query,
+                                    scan.face_normals, fit.vert_w, threshold, scan.boundary_faces)
         e_d = float(np.sum(de.w * (de.dist * MM) ** 2) / len(cur))
-        rms = float(np.sqrt(np.sum(de.w * (de.dist * MM) ** 2) / max(np.sum(de.w), 1e-12)))
-        cover = float(np.sum(de.w > 0) / max(np.sum(vert_w > 0), 1))
+        rms = float(np.sqrt(np.sum(de.w * (de.dist * MM) ** 2) / max(np.sum(de.w), TINY)))
+        cover = float(np.sum(de.w > 0) / max(np.sum(fit.vert_w > 0), 1))
         e_m = None
         if marker_tpl is not None:
-            pred = marker_tpl + sum(f(marker_tpl) for f in functions)
-            e_m = float(np.sum(((pred - marker_scan) * MM) ** 2))
+            e_m = float(np.sum(((marker_tpl + fit.displacement(marker_tpl) - marker_scan) * MM) ** 2))
         e = options.alpha * e_d + (options.beta * e_m if e_m is not None else 0.0)
-        last_dist[0] = np.where(de.matched, de.dist, np.nan)
-        return e_d, rms, e_m, e, cover
+        return cur, np.where(de.matched, de.dist, np.nan), (e_d, rms, e_m, e, cover)
 
-    e_d, rms, e_m, e, cover = evaluate(disp)
-    levels = [Level(0, "rbf", len(P), len(P), e_d, rms, e_m, e, cover, time.perf_counter() - t0)]
-    best, best_disp, best_funcs, best_dist = 0, disp, list(functions), last_dist[0]
+    cur, dist_now, errs = evaluate()
+    levels = [Level(0, "rbf", len(P), len(P), *errs, time.perf_counter() - t0)]
+    best, best_verts, best_funcs, best_dist = 0, cur, list(fit.functions), dist_now
 
-    # feature mesh over the FDPs in use (missing FDPs simply have no triangles)
-    fm_q = Q.copy()          # feature-mesh vertices, scan side (calibrated); the template side is
-    fm_t = feature_mesh(P)   # where they sit on the deformed template, which interpolates them
-    # the paper's box for the curvature search: eye to eye across, head top to mouth bottom
-    box_names = [n for n in ("3.7", "3.12", "11.1", "2.1") if n in q_fdp]
-    if len(box_names) == 4:
-        lo_x, hi_x = sorted((q_fdp["3.12"][0], q_fdp["3.7"][0]))
-        face_box = ((scan.verts[:, 0] > lo_x) & (scan.verts[:, 0] < hi_x) &
-                    (scan.verts[:, 2] < q_fdp["11.1"][2]) & (scan.verts[:, 2] > q_fdp["2.1"][2]))
-    else:
-        face_box = np.ones(len(scan.verts), bool)
-    dead = np.zeros(len(fm_t), bool)
+    # the feature mesh over the FDPs in use (its template side is where they sit on the deformed template)
+    fmesh = {"q": Q.copy(), "t": feature_mesh(P), "dead": None}
+    fmesh["dead"] = np.zeros(len(fmesh["t"]), bool)
+    face_box = _face_box(scan, q_fdp)
 
+    # 3. levels 1..K (sec 4): new pairs, then a CSRBF offset with support halving per level
     for k in range(1, options.max_levels + 1):
         say(0.1 + 0.85 * k / (options.max_levels + 1), f"level {k}: searching feature points")
         t0 = time.perf_counter()
-        reach = max(threshold / 2 ** (k - 1), 0.002)
-        new_p, new_q = [], []
-
-        cur = V + disp
-        cur_query = spatial.MeshQuery(cur, tpl.skin.tris)
-        cur_n = geometry.face_normals(cur, tpl.skin.tris)
-
-        # (a) feature-mesh subdivision (Kahler et al.): the deformed template and the scan share the
-        #     feature mesh (its vertices are FP pairs), so one ray from each triangle's barycentre
-        #     along its normal meets both surfaces: a new pair, and the triangle splits in three
-        live = np.flatnonzero(~dead) if options.use_feature_mesh else np.zeros(0, int)
-        if len(live):
-            tri = fm_t[live]
-            bq = fm_q[tri].mean(axis=1)
-            nq = geometry.face_normals(fm_q, tri)
-            size = np.linalg.norm(fm_q[tri] - bq[:, None], axis=2).max(axis=1)
-            lim = np.minimum(0.5 * size, reach)
-            ht = cur_query.ray_cast(bq, nq, lim)
-            hs = scan.query.ray_cast(bq, nq, lim)
-            ft, fs = np.where(ht.hit, ht.face, 0), np.where(hs.hit, hs.face, 0)
-            ok = ht.hit & hs.hit & (face_w[ft] > 0) & ~scan.boundary_faces[fs]
-            ok &= np.einsum("ij,ij->i", cur_n[ft], scan.face_normals[fs]) > 0.5
-            dead[live[~ok]] = True
-            acc = live[ok]
-            if len(acc):
-                tp = np.einsum("ij,ijk->ik", ht.bary[ok], V[tpl.skin.tris[ft[ok]]])
-                base = len(fm_q)
-                fm_q = np.vstack([fm_q, hs.point[ok]])
-                idx = base + np.arange(len(acc))
-                a, b, c = fm_t[acc, 0], fm_t[acc, 1], fm_t[acc, 2]
-                fm_t[acc] = np.c_[a, b, idx]
-                fm_t = np.vstack([fm_t, np.c_[b, c, idx], np.c_[c, a, idx]])
-                dead = np.concatenate([dead, np.zeros(2 * len(acc), bool)])
-                new_p.append(tp)
-                new_q.append(hs.point[ok])
-
-        # (b) mean-curvature search on the scan (appendix), inside the face box the paper uses,
-        #     matched to the current template by rays along the scan normal
-        H, valid = scan.curvature(face_box)
-        cand = np.flatnonzero(valid & ~_near_boundary(scan) & face_box)
-        n_pick = options.curvature_points * 2 ** (k - 1)
-        if len(cand) and options.use_curvature:
-            order = cand[np.argsort(-np.abs(H[cand]))]
-            pick = _spread(scan.verts[order[: n_pick * 6]], threshold / 2 ** (k + 1))[:n_pick]
-            src = order[pick]
-            hit = cur_query.ray_cast(scan.verts[src], scan.vertex_normals[src], min(reach, options.curvature_reach))
-            f = np.where(hit.hit, hit.face, 0)
-            ok = hit.hit & (face_w[f] > 0)
-            ok &= np.einsum("ij,ij->i", cur_n[f], scan.vertex_normals[src]) > 0.7
-            if ok.any():
-                tp = np.einsum("ij,ijk->ik", hit.bary[ok], V[tpl.skin.tris[f[ok]]])
-                new_p.append(tp)
-                new_q.append(scan.verts[src[ok]])
-
-        # (c) surface samples: template vertices spread `spacing` apart, along the current normal to the
-        #     scan (Kahler-style rays on a denser set; spacing halves per level)
-        spacing = max(options.sample_spacing / 2 ** (k - 1), options.min_sample_spacing)
-        cur_vn = geometry.vertex_normals(cur, tpl.skin.tris)
-        seen = np.flatnonzero(vert_w > 0)
-        pick = seen[_spread(V[seen], spacing)]
-        hit = scan.query.ray_cast(cur[pick], cur_vn[pick], reach)
-        f = np.where(hit.hit, hit.face, 0)
-        ok = hit.hit & ~scan.boundary_faces[f] & (np.einsum("ij,ij->i", cur_vn[pick], scan.face_normals[f]) > 0.5)
-        if ok.any():
-            new_p.append(V[pick[ok]])
-            new_q.append(hit.point[ok])
-
-        if not new_p:
-            break
-        add_p, add_q = np.vstack(new_p), np.vstack(new_q)
-        # the inner-lip seam: no pairs next to it (a ray there may land on the other lip); instead the
-        # seam vertices are anchored where the previous level put them, so the lips stay closed
-        far = cKDTree(V[seam]).query(add_p, distance_upper_bound=options.seam_band)[0] == np.inf
-        add_p, add_q = add_p[far], add_q[far]
-        pairs_p, pairs_q = np.vstack([pairs_p, add_p]), np.vstack([pairs_q, add_q])
-        pairs_p, pairs_q = _dedupe(pairs_p, pairs_q, 2e-4)
-        if options.thin_pairs > 0:     # at most one pair per thin_pairs x spacing (FDPs and older pairs first)
-            keep = np.sort(_spread(pairs_p, options.thin_pairs * spacing))
-            keep = np.union1d(keep, np.arange(len(P)))
-            pairs_p, pairs_q = pairs_p[keep], pairs_q[keep]
-        fit_p = np.vstack([pairs_p, V[seam]])
-        fit_q = np.vstack([pairs_q, V[seam] + disp[seam]])
-        fit_p, fit_q = _dedupe(fit_p, fit_q, 5e-4)
-        say(0.1 + 0.85 * (k + 0.5) / (options.max_levels + 1), f"level {k}: fitting {len(pairs_p)} pairs")
-        if len(pairs_p) < options.pair_threshold:
-            fk = rbf.fit_rbf(fit_p, fit_q - fit_p, rho=options.rho)
-            functions = [fk]
-            method, sigma = "rbf", None
-        else:
-            sigma = options.support or options.support_factor * spacing
-            resid = fit_q - (fit_p + sum(f(fit_p) for f in functions))
-            functions = functions + [rbf.fit_csrbf(fit_p, resid, sigma)]
-            method = "csrbf"
-        disp = sum(f(V) for f in functions)
-        e_d, rms, e_m, e, cover = evaluate(disp)
-        levels.append(Level(k, method, len(pairs_p), len(add_p), e_d, rms, e_m, e, cover,
-                            time.perf_counter() - t0, None if sigma is None else sigma * MM))
-        if e < levels[best].E:
-            best, best_disp, best_funcs, best_dist = k, disp, list(functions), last_dist[0]
+        fixed = Pairs.empty()
+        reach = fit.reach(k)
+        if options.use_feature_mesh:
+            fixed = fixed + feature_mesh_pairs(fit, fmesh, reach)
+        if options.use_curvature:
+            fixed = fixed + curvature_pairs(fit, face_box, options.curvature_points * 2 ** (k - 1),
+                                            min(reach, options.curvature_reach), threshold / 2 ** (k + 1))
+        say(0.1 + 0.85 * (k + 0.5) / (options.max_levels + 1), f"level {k}: fitting")
+        pairs, sigma = fit_level(fit, clicks, k, fixed)
+        cur, dist_now, errs = evaluate()
+        levels.append(Level(k, "csrbf", len(pairs), len(fixed), *errs,
+                            time.perf_counter() - t0, sigma * MM))
+        if errs[3] < levels[best].E:
+            best, best_verts, best_funcs, best_dist = k, cur, list(fit.functions), dist_now
         elif options.stop_at_minimum:
             break
 
-    verts = V + best_disp
     # where the scan has no room for the template's detail (closed eyes under open lids) the fit
     # folds a few triangles over: relax the displacement around them until none is folded
-    n_folded = len(geometry.folded(V, verts, tpl.skin.tris))
-    verts, moved, left = geometry.unfold(V, verts, tpl.skin.tris)
+    n_folded = len(geometry.folded(V, best_verts, fit.tris))
+    verts, moved, left = geometry.unfold(V, best_verts, fit.tris)
     again = np.flatnonzero(moved & np.isfinite(best_dist))
     if len(again):                  # the relaxed vertices' distances to the scan, measured anew
         best_dist = best_dist.copy()
@@ -383,16 +535,28 @@ def adapt(tpl, scan_verts, scan_tris, scan_fdps, options=AdaptOptions(), markers
     unfolded = {"folded_triangles": n_folded, "vertices_relaxed": int(moved.sum()), "folded_left": left}
     marker_rms = None
     if marker_tpl is not None:
-        pred = marker_tpl + sum(f(marker_tpl) for f in best_funcs)
+        pred = marker_tpl + fit.displacement(marker_tpl, best_funcs)
         marker_rms = float(np.sqrt(np.mean(np.sum((pred - marker_scan) ** 2, axis=1)))) * MM
-    outcome = fit_outcome(best_dist, vert_w, left, marker_rms, flagged, options)
+    outcome = fit_outcome(best_dist, fit.vert_w, left, marker_rms, flagged, options)
     say(1.0, f"done: best level {best}")
-    result = AdaptResult(verts=verts, verts_scan=sim.inverse().apply(verts), similarity=sim, levels=levels,
-                         best_level=best, functions=best_funcs, flagged=flagged, dropped=dropped,
-                         calibration_info={**cal_info, "unused_fdps": unused},
-                         seconds=time.perf_counter() - t_start, distances=best_dist, scan=scan,
-                         unfolded=unfolded, outcome=outcome)
-    return result
+    return AdaptResult(verts=verts, verts_scan=sim.inverse().apply(verts), similarity=sim, levels=levels,
+                       best_level=best, functions=best_funcs, flagged=flagged, dropped=dropped,
+                       calibration_info={**cal_info, "unused_fdps": unused},
+                       seconds=time.perf_counter() - t_start, distances=best_dist, scan=scan,
+                       unfolded=unfolded, outcome=outcome)
+
+
+def _face_box(scan, q_fdp):
+    """The paper's box for the curvature search: eye to eye across (outer corners), from one and a half
+    eye-to-mouth heights above the eyes down to the lowest FDP (the whole scan without eye corners)."""
+    if not ("3.7" in q_fdp and "3.12" in q_fdp):
+        return np.ones(len(scan.verts), bool)
+    lo_x, hi_x = sorted((q_fdp["3.12"][0], q_fdp["3.7"][0]))
+    eyes = 0.5 * (q_fdp["3.7"][2] + q_fdp["3.12"][2])
+    low = min(p[2] for p in q_fdp.values())
+    top = q_fdp["11.1"][2] if "11.1" in q_fdp else eyes + 1.5 * (eyes - low)
+    z = scan.verts[:, 2]
+    return (scan.verts[:, 0] > lo_x) & (scan.verts[:, 0] < hi_x) & (z < top) & (z > low - 0.01)
 
 
 def fit_outcome(distances, weights, folds_left, marker_rms_mm, flagged, options):
@@ -478,11 +642,3 @@ def _spread(points, radius):
     for i in np.flatnonzero(has_earlier):  # only points with earlier neighbours need the greedy test
         taken[i] = not taken[lo[starts[i]:ends[i]]].any()
     return np.flatnonzero(taken)
-
-
-def _dedupe(p, q, tol):
-    """Drop pairs whose template point repeats an earlier one within tol (keeps the first)."""
-    key = np.round(p / tol).astype(np.int64)
-    _, first = np.unique(key, axis=0, return_index=True)
-    first = np.sort(first)
-    return p[first], q[first]
