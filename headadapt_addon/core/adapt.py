@@ -21,6 +21,7 @@ from .exceptions import LandmarkError
 
 MM = 1000.0
 TINY = 1e-12
+DENSE_SPACING = 0.002   # a scan whose median edge is shorter is paired by tangent planes, m
 SCANNER_VISIBLE_PARTS = ("skin", "eye_l", "eye_r")
 
 
@@ -49,15 +50,17 @@ class AdaptOptions:
     curvature_weight: float = 1.0       # weight of a curvature pair
     affine_iterations: int = 8          # ICP rounds of the whole-skin affine map before the clicks' RBF
     affine_ridge: float = 1e-3          # how firmly the affine map's linear part is held to the identity
+    rays_from_level: int = 2            # from this level on, pairs along the template's normal (sec 4.1)
     icp_iterations: int = 3             # closest-point pairing and refit rounds per level
-    stiffness: float = 0.3              # smoothness of a level: ridge on its CSRBF coefficients, relative
+    stiffness: float = 10.0             # smoothness of a level: ridge on its CSRBF coefficients, relative
                                         # to the data weight a centre carries (nricp's stiffness, in effect)
-    stiffness_decay: float = 0.5        # the stiffness per level falls by this factor
+    stiffness_decay: float = 0.2        # the stiffness per level falls by this factor
+    min_stiffness: float = 0.0          # down to this
     robust_scale: float = 0.5           # Cauchy weight scale of a surface pair, x the level's reach
     click_weight: float = 20.0          # a click weighs as much as this many surface pairs at level 1
     click_decay: float = 0.25           # and this factor less at each finer level (evidence, not law)
     seam_band: float = 0.004            # no pairs within this of the inner-lip seam (template frame), m
-    seam_weight: float = 20.0           # weight holding the seam where the level before put it
+    seam_weight: float = 0.0            # weight holding the seam where the level before put it
     alpha: float = 1.0                  # weight of E_d in E (eq 24)
     beta: float = 0.01                  # weight of E_m in E (E_m sums over markers, E_d averages)
     stop_at_minimum: bool = True        # stop when E rises (sec 5.3)
@@ -170,11 +173,16 @@ class _ScanSide:
         self.boundary_verts = np.zeros(len(verts), bool)
         self.boundary_verts[tris[self.boundary_faces].ravel()] = True
         self.vertex_tree = cKDTree(verts)
+        self.coarse = np.median(np.linalg.norm(verts[tris[:, 0]] - verts[tris[:, 1]], axis=1)) > DENSE_SPACING
         self._curv = None
 
     def nearest_on_plane(self, points):
-        """(point, normal, distance, on a hole's border) per query point: the nearest scan vertex's
-        tangent plane, a fast stand-in for the closest surface point on a dense scan (ICP pairs)."""
+        """(point, normal, distance, on a hole's border) per query point for ICP pairs: on a dense scan
+        the nearest scan vertex's tangent plane (a fast stand-in for the closest surface point: off
+        by curvature x spacing^2 / 2, under 0.05 mm at 2 mm spacing), else the closest point."""
+        if self.coarse:
+            q, f, d = self.query.closest_points(points)
+            return q, self.face_normals[f], d, self.boundary_faces[f]
         _, i = self.vertex_tree.query(points)
         n = self.vertex_normals[i]
         q = points - np.einsum("ij,ij->i", points - self.verts[i], n)[:, None] * n
@@ -365,16 +373,24 @@ def curvature_pairs(fit, face_box, count, reach, spread):
     return Pairs(tp, scan.verts[src[ok]], np.full(len(tp), fit.options.curvature_weight))
 
 
-def surface_pairs(fit, reach, mask=None):
-    """Closest-point pairs (non-rigid ICP): each seen template vertex to its nearest scan point, kept
-    when within `reach`, the normals agree within 60 degrees and the point is not on a hole's
-    border; weighted by region and by a robust (Cauchy) weight on the distance."""
+def surface_pairs(fit, reach, along_normal=False):
+    """Pairs of the seen template vertices with the scan, kept when within `reach`, the normals agree
+    within 60 degrees and the point is not on a hole's border, weighted by region and by a robust
+    (Cauchy) weight on the distance. Coarse levels take the closest point (non-rigid ICP: the
+    template slides until its shapes meet the scan's); fine levels cast along the template's normal
+    (the paper's rays: no sideways pull, so nothing folds where the scan lacks the template's detail)."""
     cur = fit.current()
     normals = geometry.vertex_normals(cur, fit.tris)
-    use = np.flatnonzero((fit.vert_w > 0) & ~fit.near_seam & (True if mask is None else mask))
-    q, n, d, border = fit.scan.nearest_on_plane(cur[use])
+    use = np.flatnonzero((fit.vert_w > 0) & ~fit.near_seam)
+    if along_normal:
+        hit = fit.scan.query.ray_cast(cur[use], normals[use], reach)
+        f = np.where(hit.hit, hit.face, 0)
+        q, n, d, border = np.nan_to_num(hit.point), fit.scan.face_normals[f], np.abs(np.nan_to_num(hit.t, nan=np.inf)), \
+            fit.scan.boundary_faces[f] | ~hit.hit
+    else:
+        q, n, d, border = fit.scan.nearest_on_plane(cur[use])
     ok = (d < reach) & ~border & (np.einsum("ij,ij->i", normals[use], n) > 0.5)
-    w = fit.vert_w[use] / (1.0 + (d / (fit.options.robust_scale * reach)) ** 2)
+    w = fit.vert_w[use] / (1.0 + (np.minimum(d, reach) / (fit.options.robust_scale * reach)) ** 2)
     return Pairs(fit.V[use[ok]], q[ok], w[ok], use[ok])
 
 
@@ -419,7 +435,7 @@ def fit_level(fit, clicks, k, fixed=None):
     round refitting the level's CSRBF (csrbf_level). Returns (the last round's pairs, sigma)."""
     o = fit.options
     sigma = o.support or o.support_factor * max(o.sample_spacing / 2 ** (k - 1), o.min_sample_spacing)
-    stiffness = o.stiffness * o.stiffness_decay ** (k - 1)
+    stiffness = max(o.stiffness * o.stiffness_decay ** (k - 1), o.min_stiffness)
     fixed = Pairs.empty() if fixed is None else fixed
     far = cKDTree(fit.V[fit.seam]).query(fixed.p, distance_upper_bound=o.seam_band)[0] == np.inf
     fixed = fixed.take(far)
@@ -429,7 +445,7 @@ def fit_level(fit, clicks, k, fixed=None):
     soft = Pairs(clicks.p, clicks.q, clicks.w * o.click_weight * o.click_decay ** (k - 1))
     below = list(fit.functions)
     for _ in range(o.icp_iterations):
-        pairs = surface_pairs(fit, fit.reach(k)) + fixed + soft + anchors
+        pairs = surface_pairs(fit, fit.reach(k), k >= o.rays_from_level) + fixed + soft + anchors
         fit.functions = below + [csrbf_level(fit, pairs, sigma, stiffness)]
     return pairs, sigma
 
