@@ -23,6 +23,9 @@ MM = 1000.0
 TINY = 1e-12
 DENSE_SPACING = 0.002   # a scan whose median edge is shorter is paired by tangent planes, m
 SCANNER_VISIBLE_PARTS = ("skin", "eye_l", "eye_r")
+# the face: what the outcome judges the fit by (hair, a crown or a collar may cover scalp and neck)
+FACE_REGIONS = ("forehead", "brow_l", "brow_r", "eyelid_l", "eyelid_r", "nose", "cheek_l", "cheek_r",
+                "upper_lip", "lower_lip", "chin_jaw")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -33,9 +36,9 @@ class AdaptOptions:
     support: float | None = None        # fixed CSRBF support sigma (m); default: support_factor x spacing
     calibration: str = "auto"           # "paper", "umeyama" or "auto"
     drop_flagged: bool = True           # drop FDPs confirmed as wrongly clicked and refit level 0
-    flag_mm: float = 8.0                # leave-one-out residual above which an FDP is a suspect, mm
-    confirm_mm: float = 12.0            # a suspect is dropped only if the surface fit leaves it this far, mm
-                                        # (people disagree by ~3 mm, a coarse fit errs by ~5; a slip is 20)
+    confirm_mm: float = 10.0            # a click this far from where a coarse fit to the surface and the
+                                        # other clicks puts its FDP is wrong, mm (people disagree by ~3 mm,
+                                        # a coarse fit errs by ~5; a slip of the hand is 20)
     off_surface_mm: float = 12.0        # an FDP farther than this from the scan surface is an error
     curvature_points: int = 150         # scan curvature points at level 1 (doubles per level)
     sample_spacing: float = 0.016       # spacing of the CSRBF centres at level 1 (halves per level), m
@@ -126,18 +129,6 @@ class AdaptResult:
             "outcome": self.outcome,
             "units": "E_d, E_m, E in mm^2 of the template frame (paper eq 22-24); *_mm in mm",
         }
-
-
-def _loo_residuals(centres, values):
-    """Leave-one-out residuals of an interpolating phi(r)=r RBF with affine part (Rippa's formula)."""
-    m = len(centres)
-    a = np.zeros((m + 4, m + 4))
-    a[:m, :m] = np.linalg.norm(centres[:, None] - centres[None], axis=2)
-    a[:m, m:] = np.c_[centres, np.ones(m)]
-    a[m:, :m] = a[:m, m:].T
-    inv = np.linalg.pinv(a)
-    coef = inv[:m, :m] @ values
-    return np.linalg.norm(coef / np.diag(inv)[:m, None], axis=1)
 
 
 def feature_mesh(points):
@@ -472,32 +463,36 @@ def _solve_spd(A, b, fit, sigma, rtol=1e-5):
     return out
 
 
-def check_clicks(fit, names, P, Q, options, weights):
-    """Wrong-click detection (sec 8): an FDP whose leave-one-out residual at level 0 stands out is a
-    suspect; it is dropped only if a coarse fit to the scan's surface without it still leaves the
-    click farther than options.confirm_mm from its template point, so a right click on a feature
-    the others cannot predict (the nose tip) is kept. Returns {name: reason} of the clicks to drop."""
-    loo = _loo_residuals(P, Q - P) * MM
-    median = float(np.median(loo))
-    dnn = np.sort(np.linalg.norm(P[:, None] - P[None], axis=2), axis=1)[:, 1] * MM
-    limit = np.maximum.reduce([np.full(len(loo), options.flag_mm), 4 * median * np.ones(len(loo)), 0.6 * dnn])
-    suspects = [i for i in np.argsort(-loo) if loo[i] > limit[i]]
-    if not suspects:
-        return {}
-    # at most so many that calibration keeps what it needs
-    suspects = suspects[:max(0, len(names) - calibration.MIN_FDPS)]
+def check_clicks(fit, names, P, Q, weights):
+    """Wrong-click detection (sec 8), by the scan's surface rather than by the other clicks alone:
+    a coarse fit (level 0 and level 1) to the surface and all clicks as soft pairs puts each FDP
+    where the surface and the others say; the click farthest from there, if over confirm_mm, is
+    checked by the same fit without it and dropped only if it is still that far. A right click on a
+    feature the others cannot predict (the nose tip) agrees with the surface and is kept; at least
+    calibration.MIN_FDPS clicks always remain. Returns {name: reason} of the clicks to drop."""
+    o = fit.options
     keep = np.ones(len(names), bool)
-    keep[suspects] = False
-    others = Pairs(P[keep], Q[keep], weights[keep])
-    level_zero(fit, others)
-    fit_level(fit, others, 1)
-    where = P + fit.displacement(P)
     out = {}
-    for i in suspects:
-        off = float(np.linalg.norm(where[i] - Q[i]) * MM)
-        if off > options.confirm_mm:
-            out[names[i]] = (f"{off:.1f} mm from where the scan's surface puts it (leave-one-out residual "
-                             f"{loo[i]:.1f} mm, limit {limit[i]:.1f} mm): probably clicked at the wrong spot")
+
+    def offsets():
+        clicks = Pairs(P[keep], Q[keep], weights[keep])
+        level_zero(fit, clicks)
+        fit_level(fit, clicks, 1)
+        return np.linalg.norm(P + fit.displacement(P) - Q, axis=1) * MM
+
+    off = offsets()
+    while keep.sum() > calibration.MIN_FDPS:
+        i = int(np.argmax(np.where(keep, off, -1.0)))
+        if off[i] <= o.confirm_mm:
+            break
+        keep[i] = False
+        without = offsets()
+        if without[i] <= o.confirm_mm:        # the surface agrees with it after all
+            keep[i] = True
+            break
+        out[names[i]] = (f"{without[i]:.1f} mm from where the scan's surface and the other clicks put it "
+                         f"(limit {o.confirm_mm:.0f} mm): probably clicked at the wrong spot")
+        off = without
     return out
 
 
@@ -517,14 +512,16 @@ def adapt(tpl, scan_verts, scan_tris, scan_fdps, options=AdaptOptions(), markers
     unused = [k for k in given if k not in tpl_fdps]
     given = {k: v for k, v in given.items() if k in tpl_fdps}
 
-    # 1. calibration (sec 3.1)
+    # 1. calibration (sec 3.1), after left/right labels that look swapped are put right
     say(0.02, "calibrating")
+    given, handed = calibration.check_handedness(given, tpl_fdps)
     sim, cal_info = calibration.calibrate(given, tpl_fdps, method=options.calibration)
     sv = sim.apply(scan_verts)
     q_fdp = {k: sim.apply(v) for k, v in given.items()}
     # normals out of the head, whatever winding the file has (pairs are matched by normals)
     scan_tris, flipped = geometry.orient_outward(sv, scan_tris, tpl.parts["cranium"].verts.mean(axis=0))
-    cal_info = {**cal_info, "scan_pieces_turned": flipped}
+    notes = _handedness_notes(handed, flipped)
+    cal_info = {**cal_info, "scan_pieces_turned": flipped, "handedness": {**handed, "notes": notes}}
     scan = _ScanSide(sv, scan_tris)
     width = float(np.ptp(tpl.skin.verts[:, 0]))
     threshold = width / 10.0
@@ -545,7 +542,7 @@ def adapt(tpl, scan_verts, scan_tris, scan_fdps, options=AdaptOptions(), markers
     P = np.array([tpl_fdps[k] for k in names])
     Q = np.array([q_fdp[k] for k in names])
     click_w = np.ones(len(names))
-    flagged = check_clicks(fit, names, P, Q, options, click_w)
+    flagged = check_clicks(fit, names, P, Q, click_w)
     dropped = []
     if flagged and options.drop_flagged:
         keep = np.array([k not in flagged for k in names])
@@ -619,7 +616,8 @@ def adapt(tpl, scan_verts, scan_tris, scan_fdps, options=AdaptOptions(), markers
     if marker_tpl is not None:
         pred = marker_tpl + fit.displacement(marker_tpl, best_funcs)
         marker_rms = float(np.sqrt(np.mean(np.sum((pred - marker_scan) ** 2, axis=1)))) * MM
-    outcome = fit_outcome(best_dist, fit.vert_w, left, marker_rms, flagged, options)
+    face = np.isin(tpl.region, [tpl.region_names.index(r) for r in FACE_REGIONS])
+    outcome = fit_outcome(best_dist, face, left, marker_rms, flagged, options, notes)
     say(1.0, f"done: best level {best}")
     return AdaptResult(verts=verts, verts_scan=sim.inverse().apply(verts), similarity=sim, levels=levels,
                        best_level=best, functions=best_funcs, flagged=flagged, dropped=dropped,
@@ -641,20 +639,33 @@ def _face_box(scan, q_fdp):
     return (scan.verts[:, 0] > lo_x) & (scan.verts[:, 0] < hi_x) & (z < top) & (z > low - 0.01)
 
 
-def fit_outcome(distances, weights, folds_left, marker_rms_mm, flagged, options):
-    """How a fit ended, honestly: folds left, distance RMS over the seen skin (mm), marker RMS (mm),
-    one warning line per problem, and ok (False: no folds may be left, the RMS must stay under
-    options.bad_fit_rms_mm)."""
-    seen = np.isfinite(distances) & (weights > 0)
+def _handedness_notes(handed, flipped):
+    """Warning lines for left/right labels put right (calibration.check_handedness). All pairs
+    swapped on a scan wound inward is named a mirrored scan (mirroring a mesh turns its winding)."""
+    if handed["all"]:
+        if flipped:
+            return ["the scan looks mirrored (left and right reversed; its triangles are wound inward): "
+                    "its left/right FDP labels were swapped to match; mirror the scan back on X for a "
+                    "head with the person's own sides"]
+        return ["left and right FDP labels look swapped (clicked from the viewer's side?): "
+                "every left/right pair was swapped back (" + ", ".join("/".join(p) for p in handed["swapped"]) + ")"]
+    return [f"FDP {a} and FDP {b} look swapped (left/right): swapped back" for a, b in handed["swapped"]]
+
+
+def fit_outcome(distances, face, folds_left, marker_rms_mm, flagged, options, notes=()):
+    """How a fit ended, honestly: folds left, distance RMS over the face the scan shows (mm; `face` a
+    vertex mask, FACE_REGIONS), marker RMS (mm), one warning line per problem, and ok (False: no
+    folds may be left, the RMS must stay under options.bad_fit_rms_mm)."""
+    seen = np.isfinite(distances) & face
     rms = float(np.sqrt(np.mean(distances[seen] ** 2)) * MM) if seen.any() else float("nan")
-    warnings = [f"FDP {k}: {why}" for k, why in flagged.items()]
+    warnings = list(notes) + [f"FDP {k}: {why}" for k, why in flagged.items()]
     ok = True
     if folds_left:
         ok = False
         warnings.append(f"{folds_left} folded triangles left in the adapted skin")
     if not np.isfinite(rms) or rms > options.bad_fit_rms_mm:
         ok = False
-        warnings.append(f"the adapted skin lies {rms:.2f} mm RMS from the scan over {int(seen.sum())} seen "
+        warnings.append(f"the adapted face lies {rms:.2f} mm RMS from the scan over {int(seen.sum())} seen "
                         f"vertices (limit {options.bad_fit_rms_mm:.2f} mm): the fit did not reach the scan")
     return {"folds_left": int(folds_left), "seen_rms_mm": rms, "seen_vertices": int(seen.sum()),
             "marker_rms_mm": marker_rms_mm, "warnings": warnings, "ok": ok}

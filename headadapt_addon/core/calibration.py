@@ -125,6 +125,46 @@ def calibrate(scan_fdps, template_fdps, method="auto"):
     return candidates[best], info
 
 
+SWAP_GAIN = 0.5      # a relabelling counts only if it at least halves the calibration residual
+
+
+def _rms(scan_fdps, template_fdps, names):
+    sim = umeyama(np.array([scan_fdps[k] for k in names]), np.array([template_fdps[k] for k in names]))
+    return _residuals(sim, {k: scan_fdps[k] for k in names}, template_fdps)[0]
+
+
+def check_handedness(scan_fdps, template_fdps):
+    """Left/right labels that look swapped: (relabelled FDPs, {"swapped": [(a, b)], "all": bool}).
+
+    People often label from the viewer's side: then every left/right pair is swapped, and the clicks
+    are the mirror image of the template's FDPs (so is a mirrored scan with its own labels; the
+    caller can tell them apart by the scan's winding). Each mirror pair whose swap at least halves
+    the least-squares calibration residual is swapped back, all pairs at once first, then one by
+    one. Needs at least 4 FDPs besides the pair; returns the input unchanged when nothing helps."""
+    common = [k for k in scan_fdps if k in template_fdps]
+    pairs = sorted({tuple(sorted((k, mpeg4.FDPS[k].mirror))) for k in common
+                    if mpeg4.FDPS[k].mirror in scan_fdps and mpeg4.FDPS[k].mirror in template_fdps})
+    if not pairs or len(common) < MIN_FDPS + 1:
+        return dict(scan_fdps), {"swapped": [], "all": False}
+
+    def swap(points, which):
+        out = dict(points)
+        for a, b in which:
+            out[a], out[b] = points[b], points[a]
+        return out
+
+    base = _rms(scan_fdps, template_fdps, common)
+    everything = swap(scan_fdps, pairs)
+    if _rms(everything, template_fdps, common) < SWAP_GAIN * base:
+        return everything, {"swapped": [list(p) for p in pairs], "all": True}
+    fixed, done = dict(scan_fdps), []
+    for pair in pairs:
+        trial = swap(fixed, [pair])
+        if _rms(trial, template_fdps, common) < SWAP_GAIN * _rms(fixed, template_fdps, common):
+            fixed, done = trial, done + [list(pair)]
+    return fixed, {"swapped": done, "all": False}
+
+
 def validate_landmarks(points, need=(), what="scan"):
     """Checked float copies {id: (3,)} of landmarks; LandmarkError names the FDP or the problem.
 
