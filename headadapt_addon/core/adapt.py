@@ -39,6 +39,7 @@ class AdaptOptions:
     confirm_mm: float = 10.0            # a click this far from where a coarse fit to the surface and the
                                         # other clicks puts its FDP is wrong, mm (people disagree by ~3 mm,
                                         # a coarse fit errs by ~5; a slip of the hand is 20)
+    confirm_factor: float = 3.0         # ... or this x the clicks' median distance there, if larger
     off_surface_mm: float = 12.0        # an FDP farther than this from the scan surface is an error
     curvature_points: int = 150         # scan curvature points at level 1 (doubles per level)
     sample_spacing: float = 0.016       # spacing of the CSRBF centres at level 1 (halves per level), m
@@ -131,10 +132,12 @@ class AdaptResult:
         }
 
 
-def feature_mesh(points):
-    """Triangles (k,3) over FDP positions (template frame): Delaunay on a cylinder around the head axis."""
+def feature_mesh(points, centre):
+    """Triangles (k,3) over FDP positions (template frame): Delaunay on a cylinder around the head's
+    vertical axis through `centre` (the head's, not the points': a few clicks on the face are all in
+    front of it)."""
     p = np.asarray(points)
-    c = p.mean(axis=0)
+    c = np.asarray(centre)
     angle = np.arctan2(p[:, 0] - c[0], -(p[:, 1] - c[1]))
     radius = np.median(np.linalg.norm(p[:, :2] - c[:2], axis=1))
     uv = np.c_[angle * radius, p[:, 2]]
@@ -483,15 +486,17 @@ def check_clicks(fit, names, P, Q, weights):
     off = offsets()
     while keep.sum() > calibration.MIN_FDPS:
         i = int(np.argmax(np.where(keep, off, -1.0)))
-        if off[i] <= o.confirm_mm:
+        # a face far from the template (a statue, a coarse scan) puts every click farther off
+        limit = max(o.confirm_mm, o.confirm_factor * float(np.median(off[keep])))
+        if off[i] <= limit:
             break
         keep[i] = False
         without = offsets()
-        if without[i] <= o.confirm_mm:        # the surface agrees with it after all
+        if without[i] <= limit:               # the surface agrees with it after all
             keep[i] = True
             break
         out[names[i]] = (f"{without[i]:.1f} mm from where the scan's surface and the other clicks put it "
-                         f"(limit {o.confirm_mm:.0f} mm): probably clicked at the wrong spot")
+                         f"(limit {limit:.1f} mm): probably clicked at the wrong spot")
         off = without
     return out
 
@@ -578,7 +583,7 @@ def adapt(tpl, scan_verts, scan_tris, scan_fdps, options=AdaptOptions(), markers
     best, best_verts, best_funcs, best_dist = 0, cur, list(fit.functions), dist_now
 
     # the feature mesh over the FDPs in use (its template side is where they sit on the deformed template)
-    fmesh = {"q": Q.copy(), "t": feature_mesh(P), "dead": None}
+    fmesh = {"q": Q.copy(), "t": feature_mesh(P, V.mean(axis=0)), "dead": None}
     fmesh["dead"] = np.zeros(len(fmesh["t"]), bool)
     face_box = _face_box(scan, q_fdp)
 

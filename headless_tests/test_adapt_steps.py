@@ -1,0 +1,211 @@
+"""The adaptation's steps one by one (core/adapt.py), on a scan made from the template itself under a
+known smooth deformation: the template's visible skin, stretched, sheared and bumped. Every step must
+move the template toward that known answer, and the clicks' checks must tell right from wrong."""
+import numpy as np
+import pytest
+
+from headadapt_addon.core import adapt, calibration, mpeg4
+from headadapt_addon.core.template import load_template
+
+MM = 1000.0
+
+
+@pytest.fixture(scope="module")
+def tpl():
+    return load_template()
+
+
+def _deform(x):
+    """A known smooth deformation of template-frame points: 8% deeper, 4% wider, a sheared jaw and a
+    10 mm bump on the left cheek."""
+    x = np.asarray(x, float)
+    out = x * np.array([1.04, 1.08, 1.0])
+    out[:, 1] += 0.05 * (x[:, 2] - 0.70)
+    bump = np.exp(-np.sum((x - np.array([0.045, -0.09, 0.69])) ** 2, axis=1) / (2 * 0.015 ** 2))
+    out[:, 0] += 0.010 * bump
+    return out
+
+
+@pytest.fixture(scope="module")
+def case(tpl):
+    """(scan verts, scan tris, true skin (n,3), clicks of CLICKS_11 on the scan, exact)."""
+    hidden = np.isin(tpl.region, [tpl.region_names.index(r) for r in ("mouth_interior", "eye_socket_l", "eye_socket_r")])
+    tris = tpl.skin.tris[~hidden[tpl.skin.tris].any(axis=1)]
+    truth = _deform(tpl.skin.verts)
+    fdps = tpl.fdp_points()
+    clicks = {k: _deform(fdps[k][None])[0] for k in mpeg4.CLICKS_11}
+    return truth, tris, truth, clicks
+
+
+def _fit(tpl, case, **kw):
+    scan_v, scan_t, _, clicks = case
+    scan = adapt._ScanSide(scan_v, scan_t)
+    options = adapt.AdaptOptions(**kw)
+    fit = adapt._Fit(tpl, scan, options, float(np.ptp(tpl.skin.verts[:, 0])) / 10)
+    names = list(clicks)
+    P = np.array([tpl.fdp_points()[k] for k in names])
+    Q = np.array([clicks[k] for k in names])
+    return fit, names, P, Q
+
+
+def _face(tpl):
+    return np.isin(tpl.region, [tpl.region_names.index(r) for r in adapt.FACE_REGIONS])
+
+
+def _corr_mm(tpl, verts, truth):
+    return float(np.sqrt(np.mean(np.sum((verts - truth)[_face(tpl)] ** 2, axis=1)))) * MM
+
+
+def test_global_rbf_interpolates_the_clicks_and_keeps_an_affine_map(tpl):
+    P = np.array(list(tpl.fdp_points().values()))[:20]
+    A = np.array([[1.05, 0.02, 0.0], [0.0, 0.97, 0.03], [0.01, 0.0, 1.02]])
+    Q = P @ A.T + np.array([0.01, -0.02, 0.005])
+    f = adapt.global_rbf(P, Q)
+    assert np.abs(P + f(P) - Q).max() < 1e-9                      # interpolates
+    x = tpl.skin.verts[::50]
+    assert np.abs(x + f(x) - (x @ A.T + np.array([0.01, -0.02, 0.005]))).max() < 1e-9   # affine exact
+
+
+def test_global_affine_finds_the_depth_the_clicks_cannot_see(tpl, case):
+    fit, names, P, Q = _fit(tpl, case)
+    truth = case[2]
+    before = _corr_mm(tpl, tpl.skin.verts, truth)
+    f = adapt.global_affine(fit, adapt.Pairs(P, Q, np.full(len(P), 20.0)), fit.threshold, 8)
+    after = _corr_mm(tpl, tpl.skin.verts + f(tpl.skin.verts), truth)
+    assert after < 0.5 * before, (before, after)
+    assert abs(f.matrix[1, 1] - 1.08) < 0.03                       # the depth stretch, found on the surface
+
+
+def test_surface_pairs_lie_on_the_scan_and_respect_reach(tpl, case):
+    fit, names, P, Q = _fit(tpl, case)
+    adapt.level_zero(fit, adapt.Pairs(P, Q, np.ones(len(P))))
+    for along in (False, True):
+        pairs = adapt.surface_pairs(fit, 0.004, along_normal=along)
+        assert len(pairs) > 1000
+        d = fit.scan.query.closest_points(pairs.q)[2]
+        assert np.percentile(d, 95) < (2e-4 if not along else 1e-6)   # targets on the scan
+        assert np.linalg.norm(fit.at(pairs) - pairs.q, axis=1).max() <= 0.004 + 1e-12
+        assert np.all(pairs.vertex >= 0) and np.allclose(pairs.p, tpl.skin.verts[pairs.vertex])
+
+
+def test_feature_mesh_pairs_split_triangles_and_pair_both_surfaces(tpl, case):
+    fit, names, P, Q = _fit(tpl, case)
+    adapt.level_zero(fit, adapt.Pairs(P, Q, np.ones(len(P))))
+    mesh = {"q": Q.copy(), "t": adapt.feature_mesh(P, tpl.skin.verts.mean(axis=0)), "dead": None}
+    mesh["dead"] = np.zeros(len(mesh["t"]), bool)
+    n_tri = len(mesh["t"])
+    pairs = adapt.feature_mesh_pairs(fit, mesh, fit.threshold)
+    assert len(pairs) >= 0.5 * n_tri > 0
+    assert len(mesh["t"]) == n_tri + 2 * len(pairs) and len(mesh["q"]) == len(P) + len(pairs)
+    assert fit.scan.query.closest_points(pairs.q)[2].max() < 1e-6            # on the scan
+    assert np.linalg.norm(pairs.p - tpl.skin.verts[np.argmin(np.linalg.norm(
+        tpl.skin.verts[None] - pairs.p[:, None], axis=2), axis=1)], axis=1).max() < 0.02   # on the template
+
+
+def test_curvature_pairs_come_from_curved_places(tpl, case):
+    fit, names, P, Q = _fit(tpl, case)
+    adapt.level_zero(fit, adapt.Pairs(P, Q, np.ones(len(P))))
+    box = np.ones(len(fit.scan.verts), bool)
+    pairs = adapt.curvature_pairs(fit, box, 100, 0.004, 0.004)
+    assert len(pairs) > 30
+    H, valid = fit.scan.curvature(box)
+    at = np.argmin(np.linalg.norm(fit.scan.verts[None] - pairs.q[:, None], axis=2), axis=1)
+    assert np.median(np.abs(H[at])) > 3 * np.median(np.abs(H[valid]))
+
+
+def test_csrbf_level_fits_and_its_stiffness_smooths(tpl, case):
+    fit, names, P, Q = _fit(tpl, case)
+    fit.functions = [adapt.AffineMap(np.eye(3), np.zeros(3))]
+    truth = case[2]
+    use = np.flatnonzero(_face(tpl))[::3]
+    pairs = adapt.Pairs(tpl.skin.verts[use], truth[use], np.ones(len(use)), use)
+    errs, bends = [], []
+    for stiffness in (1e-4, 10.0):
+        f = adapt.csrbf_level(fit, pairs, 0.024, stiffness)
+        fit.factor.clear()
+        fit.warm.clear()
+        off = f(tpl.skin.verts)
+        errs.append(np.sqrt(np.mean(np.sum((tpl.skin.verts[use] + off[use] - truth[use]) ** 2, axis=1))) * MM)
+        bends.append(np.linalg.norm(fit.laplacian @ off))
+    assert errs[0] < 0.5 and errs[0] < errs[1], errs               # soft: fits; stiff: fits less ...
+    assert bends[1] < bends[0], bends                              # ... and bends less
+
+
+def test_fit_level_converges_onto_the_scan(tpl, case):
+    fit, names, P, Q = _fit(tpl, case)
+    clicks = adapt.Pairs(P, Q, np.ones(len(P)))
+    adapt.level_zero(fit, clicks)
+    before = np.median(fit.scan.query.closest_points(fit.current()[_face(tpl)])[2])
+    for k in (1, 2, 3):
+        adapt.fit_level(fit, clicks, k)
+    after = np.median(fit.scan.query.closest_points(fit.current()[_face(tpl)])[2])
+    assert after < 0.2 * before and after * MM < 0.1, (before * MM, after * MM)
+
+
+def test_adapt_recovers_the_known_deformation(tpl, case):
+    scan_v, scan_t, truth, clicks = case
+    res = adapt.adapt(tpl, scan_v, scan_t, clicks)
+    assert _corr_mm(tpl, res.verts_scan, truth) < 1.5
+    assert res.outcome["ok"] and res.outcome["folds_left"] == 0 and res.outcome["seen_rms_mm"] < 0.3
+
+
+def test_right_clicks_are_kept_a_wrong_one_is_dropped(tpl, case):
+    fit, names, P, Q = _fit(tpl, case)
+    assert adapt.check_clicks(fit, names, P, Q, np.ones(len(P))) == {}
+    i = names.index("8.3")
+    wrong = Q.copy()
+    q, _, _ = fit.scan.query.closest_points((Q[i] + np.array([0.0, 0.0, 0.02]))[None])   # 2 cm up the cheek
+    wrong[i] = q[0]
+    assert set(adapt.check_clicks(fit, names, P, wrong, np.ones(len(P)))) == {"8.3"}
+
+
+def test_the_nose_tip_is_kept_with_eight_clicks(tpl, case):
+    scan_v, scan_t, truth, clicks = case
+    eight = {k: clicks[k] for k in mpeg4.CLICKS_8}
+    res = adapt.adapt(tpl, scan_v, scan_t, eight)
+    assert res.dropped == [] and res.flagged == {}
+
+
+def test_drops_never_go_below_what_calibration_needs(tpl, case):
+    fit, names, P, Q = _fit(tpl, case)
+    rng = np.random.default_rng(3)
+    wild = Q + rng.normal(0, 0.03, Q.shape)                         # every click 5 cm off
+    dropped = adapt.check_clicks(fit, names, P, wild, np.ones(len(P)))
+    assert len(names) - len(dropped) >= calibration.MIN_FDPS
+
+
+def test_swapped_labels_are_found_and_named(tpl, case):
+    scan_v, scan_t, truth, clicks = case
+    swapped = {(mpeg4.FDPS[k].mirror or k): v for k, v in clicks.items()}
+    res = adapt.adapt(tpl, scan_v, scan_t, swapped)
+    assert res.calibration_info["handedness"]["all"]
+    assert any("viewer's side" in w for w in res.outcome["warnings"])
+    assert _corr_mm(tpl, res.verts_scan, truth) < 1.5
+    one = dict(clicks)
+    one["3.7"], one["3.12"] = clicks["3.12"], clicks["3.7"]
+    fixed, info = calibration.check_handedness(one, tpl.fdp_points())
+    assert info["swapped"] == [["3.12", "3.7"]] and not info["all"]
+    assert np.allclose(fixed["3.7"], clicks["3.7"])
+    assert calibration.check_handedness(clicks, tpl.fdp_points())[1]["swapped"] == []
+
+
+def test_a_mirrored_scan_is_named(tpl, case):
+    scan_v, scan_t, truth, clicks = case
+    flip = np.array([-1.0, 1.0, 1.0])
+    res = adapt.adapt(tpl, scan_v * flip, scan_t, {k: v * flip for k, v in clicks.items()})
+    assert any("mirrored" in w for w in res.outcome["warnings"])
+
+
+def test_clicks_are_evidence_not_law(tpl, case):
+    """3 mm of disagreement between people costs at most 1 mm of correspondence."""
+    scan_v, scan_t, truth, clicks = case
+    exact = adapt.adapt(tpl, scan_v, scan_t, clicks)
+    rng = np.random.default_rng(0)
+    from headadapt_addon.core import spatial
+    q = spatial.MeshQuery(scan_v, scan_t)
+    costs = []
+    for _ in range(3):
+        moved = {k: q.closest_points((v + rng.normal(0, 0.003 / np.sqrt(3), 3))[None])[0][0] for k, v in clicks.items()}
+        noisy = adapt.adapt(tpl, scan_v, scan_t, moved)
+        costs.append(_corr_mm(tpl, noisy.verts_scan, truth) - _corr_mm(tpl, exact.verts_scan, truth))
+    assert max(costs) < 1.0, costs
