@@ -55,6 +55,7 @@ class AdaptOptions:
     affine_iterations: int = 8          # ICP rounds of the whole-skin affine map before the clicks' RBF
     affine_ridge: float = 1e-3          # how firmly the affine map's linear part is held to the identity
     rays_from_level: int = 2            # from this level on, pairs along the template's normal (sec 4.1)
+    fold_rounds: int = 2                # refits of a level without pairs around the triangles it folded
     icp_iterations: int = 3             # closest-point pairing and refit rounds per level
     stiffness: float = 10.0             # smoothness of a level: ridge on its CSRBF coefficients, relative
                                         # to the data weight a centre carries (nricp's stiffness, in effect)
@@ -64,10 +65,10 @@ class AdaptOptions:
     click_weight: float = 20.0          # a click weighs as much as this many surface pairs at level 1
     click_decay: float = 0.25           # and this factor less at each finer level (evidence, not law)
     seam_band: float = 0.004            # no pairs within this of the inner-lip seam (template frame), m
-    seam_weight: float = 0.0            # weight holding the seam where the level before put it
     alpha: float = 1.0                  # weight of E_d in E (eq 24)
     beta: float = 0.01                  # weight of E_m in E (E_m sums over markers, E_d averages)
     stop_at_minimum: bool = True        # stop when E rises (sec 5.3)
+    anatomy_support: float = 0.024      # bone, eyes and pivots follow the levels of at least this support, m
     bad_fit_rms_mm: float = 1.5         # seen-skin distance RMS above this is a failed fit: 3x the
                                         # noise of a range scanner (0.1-0.5 mm), mm
 
@@ -105,11 +106,16 @@ class AdaptResult:
     scan: object = None               # the calibrated scan (template frame) with its queries
     unfolded: dict = None             # folded triangles after the fit, vertices relaxed, folds left
     outcome: dict = None              # how it ended: folds left, seen-skin RMS, marker RMS, warnings, ok
+    anatomy_support: float = 0.0      # map_points uses the levels with at least this support, m
 
     def map_points(self, points):
-        """Carry template-frame points (k,3) through the final adaptation map (template frame)."""
+        """Carry template-frame points (k,3) inside the head (bone, eyes, pivots) through the
+        adaptation map (template frame): the levels whose support reaches under the skin
+        (AdaptOptions.anatomy_support); the finer ones shape the skin's surface only, and would
+        bend bone a few millimetres under it (anatomy.keep_inside keeps the bone under the skin)."""
         points = np.asarray(points, dtype=np.float64)
-        return points + sum(f(points) for f in self.functions)
+        return points + sum(f(points) for f in self.functions
+                            if getattr(f, "sigma", np.inf) >= self.anatomy_support)
 
     def to_scan(self, points):
         """Template-frame points (k,3) into the scan's frame and unit."""
@@ -231,6 +237,10 @@ class _Fit:
         self.seam = lip_seam(tpl)
         self.near_seam = cKDTree(self.V[self.seam]).query(self.V, distance_upper_bound=options.seam_band)[0] < np.inf
         self.functions = []
+        self.folds = geometry.FoldCheck(self.V, self.tris)
+        adjacency = geometry.neighbour_mean(self.tris, len(self.V))
+        self.ring = (adjacency + sparse.identity(len(self.V))).tocsr()   # a vertex and its neighbours
+        self.quiet = np.zeros(len(self.V), bool)     # vertices a level leaves to its smoothness term
         self._at_skin = {}
         self._bases = {}
         self.warm = {}              # last coefficients per support: the next ICP round starts there
@@ -375,7 +385,7 @@ def surface_pairs(fit, reach, along_normal=False):
     (the paper's rays: no sideways pull, so nothing folds where the scan lacks the template's detail)."""
     cur = fit.current()
     normals = geometry.vertex_normals(cur, fit.tris)
-    use = np.flatnonzero((fit.vert_w > 0) & ~fit.near_seam)
+    use = np.flatnonzero((fit.vert_w > 0) & ~fit.near_seam & ~fit.quiet)
     if along_normal:
         hit = fit.scan.query.ray_cast(cur[use], normals[use], reach)
         f = np.where(hit.hit, hit.face, 0)
@@ -424,22 +434,33 @@ def level_zero(fit, clicks):
 
 
 def fit_level(fit, clicks, k, fixed=None):
-    """Level k (sec 4) as non-rigid ICP: a few rounds of closest-point pairs plus the level's fixed
-    pairs (feature mesh, curvature), the clicks as soft pairs and the lip seam's anchors, each
-    round refitting the level's CSRBF (csrbf_level). Returns (the last round's pairs, sigma)."""
+    """Level k (sec 4) as non-rigid ICP: a few rounds of surface pairs plus the level's fixed pairs
+    (feature mesh, curvature) and the clicks as soft pairs, each round refitting the level's CSRBF
+    (csrbf_level); then refits without the pairs around any triangle it folded. Returns (the last
+    round's pairs, sigma)."""
     o = fit.options
     sigma = o.support or o.support_factor * max(o.sample_spacing / 2 ** (k - 1), o.min_sample_spacing)
     stiffness = max(o.stiffness * o.stiffness_decay ** (k - 1), o.min_stiffness)
     fixed = Pairs.empty() if fixed is None else fixed
     far = cKDTree(fit.V[fit.seam]).query(fixed.p, distance_upper_bound=o.seam_band)[0] == np.inf
     fixed = fixed.take(far)
-    # the inner-lip seam is anchored where the previous level put it, so the lips stay closed
-    anchors = Pairs(fit.V[fit.seam], fit.current()[fit.seam], np.full(len(fit.seam), o.seam_weight), fit.seam)
     # clicks are evidence, not law: their weight falls per level so the surface decides the detail
     soft = Pairs(clicks.p, clicks.q, clicks.w * o.click_weight * o.click_decay ** (k - 1))
     below = list(fit.functions)
+    fit.quiet[:] = False
     for _ in range(o.icp_iterations):
-        pairs = surface_pairs(fit, fit.reach(k), k >= o.rays_from_level) + fixed + soft + anchors
+        pairs = surface_pairs(fit, fit.reach(k), k >= o.rays_from_level) + fixed + soft
+        fit.functions = below + [csrbf_level(fit, pairs, sigma, stiffness)]
+    # where the scan has no room for the template's detail (closed or carved eyes, a statue's ears)
+    # the pairs fold the skin: those places are left to the smoothness term, and the level refitted
+    for _ in range(o.fold_rounds):
+        folds = fit.folds(fit.current())
+        if not len(folds):
+            break
+        around = np.zeros(len(fit.V), bool)
+        around[fit.tris[folds].ravel()] = True
+        fit.quiet |= (fit.ring @ around) > 0
+        pairs = surface_pairs(fit, fit.reach(k), k >= o.rays_from_level) + fixed + soft
         fit.functions = below + [csrbf_level(fit, pairs, sigma, stiffness)]
     return pairs, sigma
 
@@ -459,7 +480,7 @@ def _solve_spd(A, b, fit, sigma, rtol=1e-5):
     x0 = fit.warm[sigma]
     out = np.empty_like(b)
     for c in range(b.shape[1]):
-        out[:, c], info = cg(A, b[:, c], x0=x0[:, c], rtol=rtol, atol=0.0, maxiter=200, M=M)
+        out[:, c], info = cg(A, b[:, c], x0=x0[:, c], rtol=rtol, atol=0.0, maxiter=12, M=M)
         if info > 0:            # not converged: factorise this system
             fit.factor[sigma] = splu(A.tocsc(), permc_spec="MMD_AT_PLUS_A")
             return fit.factor[sigma].solve(np.ascontiguousarray(b))
@@ -628,7 +649,7 @@ def adapt(tpl, scan_verts, scan_tris, scan_fdps, options=AdaptOptions(), markers
                        best_level=best, functions=best_funcs, flagged=flagged, dropped=dropped,
                        calibration_info={**cal_info, "unused_fdps": unused},
                        seconds=time.perf_counter() - t_start, distances=best_dist, scan=scan,
-                       unfolded=unfolded, outcome=outcome)
+                       unfolded=unfolded, outcome=outcome, anatomy_support=options.anatomy_support)
 
 
 def _face_box(scan, q_fdp):
