@@ -45,6 +45,7 @@ class AdaptOptions:
     sample_spacing: float = 0.016       # spacing of the CSRBF centres at level 1 (halves per level), m
     min_sample_spacing: float = 0.002   # finest centre spacing, m
     support_factor: float = 3.0         # CSRBF support = this x the level's spacing
+    centre_density: float = 3.0         # a level's CSRBF centres lie its support / this apart
     reach_factor: float = 1.0           # closest-point pairs are kept within this x width/10 at level 1 (halving)
     min_reach: float = 0.002            # closest-point pairs are kept within threshold/2^(k-1), at least this, m
     use_feature_mesh: bool = True       # pairs from feature-mesh subdivision (sec 4.1, Kahler et al.)
@@ -248,11 +249,23 @@ class _Fit:
         # umbrella Laplacian of the skin (x_i minus its neighbours' mean) for the smoothness term
         self.laplacian = (sparse.identity(len(self.V), format="csr") - geometry.neighbour_mean(self.tris, len(self.V))).tocsr()
 
+    def distance_error(self, verts, exact=False):
+        """metrics.DistanceError of skin positions (n,3) against the scan (sec 5.1): nearest points
+        by the scan's tangent planes while fitting (exact=False), exact closest points to report."""
+        normals = geometry.vertex_normals(verts, self.tris)
+        if exact:
+            return metrics.distance_error(verts, normals, self.scan.query, self.scan.face_normals, self.vert_w,
+                                          self.threshold, self.scan.boundary_faces)
+        _, n, d, border = self.scan.nearest_on_plane(verts)
+        matched = (d <= self.threshold) & (np.einsum("ij,ij->i", normals, n) > 0) & ~border
+        w = np.where(matched, self.vert_w, 0.0)
+        return metrics.DistanceError(float(np.sum(w * d ** 2) / len(verts)), d, w, matched)
+
     def level_basis(self, sigma):
         """(centres, their kd-tree, the umbrella Laplacian of their Wendland functions on the skin,
         its Gram matrix) of a level with support sigma, built once per support."""
         if sigma not in self._bases:
-            centres = self.V[_spread(self.V, sigma / self.options.support_factor)]
+            centres = self.V[_spread(self.V, sigma / self.options.centre_density)]
             tree = cKDTree(centres)
             res = cKDTree(self.V).sparse_distance_matrix(tree, sigma, output_type="ndarray")
             phi = sparse.csr_matrix((rbf.wendland(res["v"], sigma), (res["i"], res["j"])),
@@ -433,7 +446,7 @@ def level_zero(fit, clicks):
         fit.functions = [global_rbf(clicks.p, clicks.q, o.rho)]
 
 
-def fit_level(fit, clicks, k, fixed=None):
+def fit_level(fit, clicks, k, fixed=None, rounds=None):
     """Level k (sec 4) as non-rigid ICP: a few rounds of surface pairs plus the level's fixed pairs
     (feature mesh, curvature) and the clicks as soft pairs, each round refitting the level's CSRBF
     (csrbf_level); then refits without the pairs around any triangle it folded. Returns (the last
@@ -448,9 +461,11 @@ def fit_level(fit, clicks, k, fixed=None):
     soft = Pairs(clicks.p, clicks.q, clicks.w * o.click_weight * o.click_decay ** (k - 1))
     below = list(fit.functions)
     fit.quiet[:] = False
-    for _ in range(o.icp_iterations):
+    for _ in range(o.icp_iterations if rounds is None else rounds):
         pairs = surface_pairs(fit, fit.reach(k), k >= o.rays_from_level) + fixed + soft
         fit.functions = below + [csrbf_level(fit, pairs, sigma, stiffness)]
+    if rounds is not None:
+        return pairs, sigma
     # where the scan has no room for the template's detail (closed or carved eyes, a statue's ears)
     # the pairs fold the skin: those places are left to the smoothness term, and the level refitted
     for _ in range(o.fold_rounds):
@@ -501,7 +516,7 @@ def check_clicks(fit, names, P, Q, weights):
     def offsets():
         clicks = Pairs(P[keep], Q[keep], weights[keep])
         level_zero(fit, clicks)
-        fit_level(fit, clicks, 1)
+        fit_level(fit, clicks, 1, rounds=1)
         return np.linalg.norm(P + fit.displacement(P) - Q, axis=1) * MM
 
     off = offsets()
@@ -588,8 +603,7 @@ def adapt(tpl, scan_verts, scan_tris, scan_fdps, options=AdaptOptions(), markers
 
     def evaluate():
         cur = fit.current()
-        de = metrics.distance_error(cur, geometry.vertex_normals(cur, fit.tris), scan.query,
-                                    scan.face_normals, fit.vert_w, threshold, scan.boundary_faces)
+        de = fit.distance_error(cur)
         e_d = float(np.sum(de.w * (de.dist * MM) ** 2) / len(cur))
         rms = float(np.sqrt(np.sum(de.w * (de.dist * MM) ** 2) / max(np.sum(de.w), TINY)))
         cover = float(np.sum(de.w > 0) / max(np.sum(fit.vert_w > 0), 1))
@@ -633,10 +647,9 @@ def adapt(tpl, scan_verts, scan_tris, scan_fdps, options=AdaptOptions(), markers
     # folds a few triangles over: relax the displacement around them until none is folded
     n_folded = len(geometry.folded(V, best_verts, fit.tris))
     verts, moved, left = geometry.unfold(V, best_verts, fit.tris)
-    again = np.flatnonzero(moved & np.isfinite(best_dist))
-    if len(again):                  # the relaxed vertices' distances to the scan, measured anew
-        best_dist = best_dist.copy()
-        best_dist[again] = scan.query.closest_points(verts[again])[2]
+    # the distances reported: exact closest points on the scan, by the paper's compatibility rule
+    de = fit.distance_error(verts, exact=True)
+    best_dist = np.where(de.matched, de.dist, np.nan)
     unfolded = {"folded_triangles": n_folded, "vertices_relaxed": int(moved.sum()), "folded_left": left}
     marker_rms = None
     if marker_tpl is not None:
