@@ -5,6 +5,16 @@ Commands:
   adapt --scan SCAN --landmarks L.json|L.pp --out DIR   adapt the template onto one scan
   folder --folder DIR --out DIR [--jobs N]              adapt every scan + landmarks pair in a folder
   demo [--out DIR]                                      adapt onto the bundled sample scan
+
+The log states how the fit ended (folds left, distance RMS over the face the scan shows, marker
+error if the landmark file has markers); every warning (a flagged or dropped FDP, swapped labels,
+folds left, a face far from the scan) is a line "headadapt: warning: ..." on stderr and in
+report.json's "outcome".
+
+Exit codes: 0 the fit is ok; 2 bad input (one line on stderr names it); 3 the fit finished but is
+not trustworthy (outcome.ok false: folds left or the face far from the scan; the OBJ, report.json
+and .blend are still written). folder: 3 if any scan's fit is not trustworthy and none failed; with
+failures (named in summary.json) 0 if any scan was adapted, 1 if none.
 """
 
 import argparse
@@ -23,7 +33,9 @@ SAMPLE_DIR = ROOT / "assets" / "sample_scan"
 
 def build_parser():
     """The command-line interface of the batch job."""
-    parser = argparse.ArgumentParser(prog="headadapt", description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(prog="headadapt", description=__doc__.split("\n\n")[0],
+                                     epilog=__doc__.split("\n\n")[-1],      # the exit codes
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = parser.add_subparsers(dest="command", required=True)
 
     def common(p):
@@ -49,10 +61,16 @@ def build_parser():
     return parser
 
 
+def _stderr(line):
+    print(line, file=sys.stderr)
+
+
 def run_adapt(scan_path, landmarks_path, out_dir, levels=4, calibration="auto", keep_flagged=False,
-              blend=None, log=print):
-    """Adapt the template onto one scan file; write adapted_head.obj + report.json (atomic); return the report."""
-    from .core import meshio
+              blend=None, log=print, warn=_stderr):
+    """Adapt the template onto one scan file; write adapted_head.obj + report.json (atomic); return the
+    report. Progress goes to log, one line per warning to warn; report["outcome"]["ok"] says whether
+    the fit can be trusted (main: exit code 3 if not)."""
+    from .core import meshio, outcome_text
     from .core.adapt import AdaptOptions, adapt
     from .core.template import load_template
 
@@ -81,15 +99,16 @@ def run_adapt(scan_path, landmarks_path, out_dir, levels=4, calibration="auto", 
     for lv in result.levels:
         log(f"  level {lv.level}: {lv.method:5s} {lv.pairs:5d} pairs  E_d {lv.E_d:8.3f} mm^2  "
             f"RMS {lv.E_d_rms_mm:6.3f} mm  E {lv.E:8.3f}  {lv.seconds:6.2f} s")
-    for name, why in result.flagged.items():
-        log(f"  FDP {name} flagged: {why}" + (" (dropped)" if name in result.dropped else ""))
     if result.calibration_info.get("scan_pieces_turned"):
         log(f"  {result.calibration_info['scan_pieces_turned']} scan piece(s) faced inward: read turned round")
     if result.unfolded and result.unfolded["folded_triangles"]:
         log(f"  {result.unfolded['folded_triangles']} folded triangles relaxed "
-            f"({result.unfolded['vertices_relaxed']} vertices)")
-    log(f"headadapt: best level {result.best_level}; wrote {out_dir / 'adapted_head.obj'} and "
-        f"{out_dir / 'report.json'} in {report['total_seconds']:.2f} s")
+            f"({result.unfolded['vertices_relaxed']} vertices), {result.unfolded['folded_left']} left")
+    log(f"headadapt: best level {result.best_level}; {outcome_text.verdict(result.outcome)}")
+    for line in outcome_text.warning_lines(result.outcome, result.flagged, result.dropped):
+        warn(f"headadapt: warning: {line}")
+    log(f"headadapt: wrote {out_dir / 'adapted_head.obj'} and {out_dir / 'report.json'} in "
+        f"{report['total_seconds']:.2f} s")
     if blend:
         from . import blendout
         blendout.write_blend(blend, tpl, result, verts, tris, points, report)
@@ -112,22 +131,27 @@ def _folder_job(job):
     from .core.exceptions import HeadAdaptError
     if marks is None:
         return {"scan": str(scan), "ok": False, "error": f"no landmark file {scan.stem}.json or {scan.stem}.pp beside it"}
+    warnings = []
     try:
         rep = run_adapt(scan, marks, out_dir, levels, calibration, keep_flagged,
-                        str(pathlib.Path(out_dir) / f"{scan.stem}.blend") if blend else None, log=lambda *a: None)
+                        str(pathlib.Path(out_dir) / f"{scan.stem}.blend") if blend else None, log=lambda *a: None,
+                        warn=lambda line: warnings.append(line.removeprefix("headadapt: warning: ")))
     except HeadAdaptError as exc:
         return {"scan": str(scan), "ok": False, "error": str(exc)}
     best = rep["levels"][rep["best_level"]]
-    return {"scan": str(scan), "ok": True, "best_level": rep["best_level"], "E_d_rms_mm": best["E_d_rms_mm"],
-            "seconds": rep["total_seconds"], "flagged_fdps": list(rep["flagged_fdps"])}
+    return {"scan": str(scan), "ok": True, "outcome_ok": rep["outcome"]["ok"], "best_level": rep["best_level"],
+            "E_d_rms_mm": best["E_d_rms_mm"], "outcome": rep["outcome"], "seconds": rep["total_seconds"],
+            "flagged_fdps": list(rep["flagged_fdps"]), "warnings": warnings}
 
 
-def run_folder(folder, out, jobs=0, levels=4, calibration="auto", keep_flagged=False, blend=False, log=print):
-    """Adapt every scan + landmarks pair of a folder in a process pool; failures are reported, not fatal."""
+def run_folder(folder, out, jobs=0, levels=4, calibration="auto", keep_flagged=False, blend=False, log=print,
+               warn=_stderr):
+    """Adapt every scan + landmarks pair of a folder in a process pool; failures are reported, not fatal.
+    A scan adapted with an outcome that is not ok counts as done with warnings ("outcome_ok": false)."""
     import concurrent.futures
     import os
 
-    from .core import meshio
+    from .core import meshio, outcome_text
     pairs = find_pairs(folder)
     if not pairs:
         from .core.exceptions import FileFormatError
@@ -140,17 +164,26 @@ def run_folder(folder, out, jobs=0, levels=4, calibration="auto", keep_flagged=F
     with concurrent.futures.ProcessPoolExecutor(max_workers=workers, mp_context=ctx) as pool:
         results = list(pool.map(_folder_job, work))
     for r in results:
-        log(f"  {'ok  ' if r['ok'] else 'FAIL'} {pathlib.Path(r['scan']).name}: "
-            + (f"level {r['best_level']}, RMS {r['E_d_rms_mm']:.2f} mm, {r['seconds']:.1f} s" if r["ok"] else r["error"]))
+        name = pathlib.Path(r["scan"]).name
+        if not r["ok"]:
+            log(f"  FAIL {name}: {r['error']}")
+            continue
+        log(f"  {'ok  ' if r['outcome_ok'] else 'WARN'} {name}: level {r['best_level']}, "
+            f"{outcome_text.verdict(r['outcome'])}, {r['seconds']:.1f} s")
+        for line in r["warnings"]:
+            warn(f"headadapt: warning: {name}: {line}")
     summary = {"folder": str(folder), "done": sum(r["ok"] for r in results),
+               "done_with_warnings": sum(r["ok"] and not r["outcome_ok"] for r in results),
                "failed": sum(not r["ok"] for r in results), "scans": results}
     meshio.write_atomic(out / "summary.json", json.dumps(summary, indent=1, default=float))
-    log(f"headadapt: {summary['done']} adapted, {summary['failed']} failed; wrote {out / 'summary.json'}")
+    log(f"headadapt: {summary['done']} adapted ({summary['done_with_warnings']} not trustworthy), "
+        f"{summary['failed']} failed; wrote {out / 'summary.json'}")
     return summary
 
 
 def main(argv=None):
-    """Run one batch command; returns the process exit code (0 ok, 2 bad input)."""
+    """Run one batch command; returns the process exit code (module docstring: 0 ok, 2 bad input,
+    3 the fit finished but is not trustworthy; folder: 1 when no scan could be adapted)."""
     from .core.exceptions import HeadAdaptError
 
     if argv is None:
@@ -159,19 +192,21 @@ def main(argv=None):
     try:
         if args.command == "demo":
             out = pathlib.Path(args.out)
-            run_adapt(SAMPLE_DIR / "scan.ply", SAMPLE_DIR / "landmarks.json", out, args.levels, args.calibration,
-                      args.keep_flagged, args.blend or str(out / "demo.blend"))
+            report = run_adapt(SAMPLE_DIR / "scan.ply", SAMPLE_DIR / "landmarks.json", out, args.levels,
+                               args.calibration, args.keep_flagged, args.blend or str(out / "demo.blend"))
         elif args.command == "folder":
             summary = run_folder(args.folder, args.out, args.jobs, args.levels, args.calibration, args.keep_flagged,
                                  bool(args.blend))
-            return 0 if summary["done"] else 1
+            if summary["failed"]:
+                return 0 if summary["done"] else 1
+            return 3 if summary["done_with_warnings"] else 0
         else:
-            run_adapt(args.scan, args.landmarks, args.out, args.levels, args.calibration, args.keep_flagged,
-                      args.blend)
+            report = run_adapt(args.scan, args.landmarks, args.out, args.levels, args.calibration,
+                               args.keep_flagged, args.blend)
     except HeadAdaptError as exc:
         print(f"headadapt: error: {exc}", file=sys.stderr)
         return 2
-    return 0
+    return 0 if report["outcome"]["ok"] else 3
 
 
 if __name__ == "__main__":

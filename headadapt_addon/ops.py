@@ -264,6 +264,7 @@ class HEADADAPT_OT_adapt(_Base, bpy.types.Operator):
 
     def execute(self, context):
         from . import blendout
+        from .core import outcome_text
         from .core.adapt import AdaptOptions, adapt
         s = settings(context)
         problem = scan_problem(context)
@@ -286,17 +287,14 @@ class HEADADAPT_OT_adapt(_Base, bpy.types.Operator):
         s.report_json = json.dumps(report, default=float)
         root = blendout.build_result_objects(template(), result, context.scene, scan.matrix_world)
         s.result_root = root
-        best = result.levels[result.best_level]
-        msg = (f"adapted: best level {result.best_level}, {best.pairs} pairs, surface RMS "
-               f"{best.E_d_rms_mm:.2f} mm, {result.seconds:.2f} s")
+        msg = (f"adapted: best level {result.best_level}, {outcome_text.verdict(result.outcome)}, "
+               f"{result.seconds:.2f} s")
         turned = result.calibration_info.get("scan_pieces_turned", 0)
         if turned:
             msg += f"; {turned} scan piece(s) faced inward and were read turned round"
-        if result.unfolded and result.unfolded["folded_triangles"]:
-            msg += f"; {result.unfolded['folded_triangles']} folded triangles relaxed"
-        if result.flagged:
-            msg += "; flagged FDPs: " + ", ".join(result.flagged)
-            self.report({"WARNING"}, msg)
+        warnings = outcome_text.warning_lines(result.outcome, result.flagged, result.dropped)
+        if warnings:        # not ok (folds left, far from the scan) or flagged FDPs: say why (Report panel too)
+            self.report({"WARNING"}, msg + "; " + "; ".join(warnings))
         else:
             self.report({"INFO"}, msg)
         return {"FINISHED"}

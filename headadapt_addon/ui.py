@@ -1,12 +1,13 @@
 """Sidebar tab "HeadAdapt" in the 3D viewport: panels in the order of the work, each showing state."""
 
 import json
+import textwrap
 
 import bpy
 
 from . import landmarks, scene
 from .ops import head_root
-from .core import mpeg4
+from .core import mpeg4, outcome_text
 
 PANELS = (
     ("TEMPLATE", "Template"),
@@ -125,8 +126,15 @@ def draw_report(layout, context):
                      f"{lv['seconds']:.2f}"):
             grid.label(text=cell)
     layout.label(text=rep.get("stopped_because", ""))
-    for name, why in rep.get("flagged_fdps", {}).items():
-        layout.label(text=f"FDP {name}: {why}", icon="ERROR")
+    outcome = rep.get("outcome")
+    if outcome:
+        layout.label(text="Fit ok" if outcome["ok"] else "Fit NOT trustworthy",
+                     icon="CHECKMARK" if outcome["ok"] else "ERROR")
+        for line in outcome_text.measures(outcome):
+            layout.label(text=line)
+    for line in outcome_text.warning_lines(outcome, rep.get("flagged_fdps"), rep.get("dropped_fdps", ())):
+        for i, part in enumerate(textwrap.wrap(line, 60)):     # the sidebar is narrow: wrap, do not cut
+            layout.label(text=part, icon="ERROR" if i == 0 else "BLANK1")
     layout.label(text="Heat map: colour attribute 'HeadAdapt distance' (Solid, Attribute)")
 
 

@@ -208,3 +208,96 @@ def test_batch_runs_as_a_blender_script_with_double_dash(tmp_path):
                            "--out", str(tmp_path), "--levels", "1"], capture_output=True, text=True, cwd=tmp_path)
     assert proc.returncode == 0, proc.stderr
     assert (tmp_path / "adapted_head.obj").is_file() and (tmp_path / "report.json").is_file()
+
+
+def fringe_scan(folder, wrong_click=True):
+    """A real fit that cannot be trusted: the bundled sample scan with a fringe of hair standing up to
+    25 mm off the forehead (a smooth swelling along the normals, 30 mm wide; the clicks and markers
+    moved with the surface), adapted at level 0 only ("Level 0 Only", --levels 0). Level 0 is a
+    global map through the clicks; no click lies on the forehead, so it cannot follow the fringe and
+    the face ends about 3 mm RMS from the scan (the limit is 1.5 mm; the full levels reach it, 0.3 mm).
+    wrong_click: FDP 5.1 (cheek centre) clicked 25 mm higher on the cheek, to be flagged and dropped.
+    Writes folder/fringe.obj and folder/fringe.json; returns their paths."""
+    from scipy.spatial import cKDTree
+
+    from headadapt_addon.batch import SAMPLE_DIR
+    from headadapt_addon.core import meshio
+
+    v, t = meshio.read_mesh(SAMPLE_DIR / "scan.ply")                 # mm
+    pts = meshio.read_landmarks(SAMPLE_DIR / "landmarks.json")
+    markers = meshio.read_landmarks.last_meta["markers"]
+    n = geometry.vertex_normals(v, t)
+    c = 0.5 * (0.5 * (pts["4.3"] + pts["4.4"]) + pts["11.1"])       # mid-forehead: brow tops to hairline
+    c = v[np.argmin(np.linalg.norm(v - c, axis=1))]
+
+    def on_fringe(p):
+        p = np.atleast_2d(np.asarray(p, dtype=float))
+        near = cKDTree(v).query(p)[1]
+        return p + 25.0 * np.exp(-0.5 * (np.linalg.norm(p - c, axis=1) / 30.0) ** 2)[:, None] * n[near]
+
+    if wrong_click:
+        pts["5.1"] = v[cKDTree(v).query(pts["5.1"] + [0.0, 0.0, 25.0])[1]]
+    folder = pathlib.Path(folder)
+    meshio.write_obj(folder / "fringe.obj", on_fringe(v), t)
+    names = list(pts)
+    meshio.write_landmarks(folder / "fringe.json", dict(zip(names, on_fringe([pts[k] for k in names]))),
+                           markers={k: on_fringe(p)[0].tolist() for k, p in markers.items()})
+    return folder / "fringe.obj", folder / "fringe.json"
+
+
+OUTCOME_FIELDS = {"folds_left", "seen_rms_mm", "seen_vertices", "marker_rms_mm", "warnings", "ok"}
+
+
+def test_batch_states_the_outcome_and_exits_0_on_the_sample(tmp_path):
+    from headadapt_addon.batch import SAMPLE_DIR
+
+    proc = subprocess.run([sys.executable, "-m", "headadapt_addon.batch", "adapt", "--scan", str(SAMPLE_DIR / "scan.ply"),
+                           "--landmarks", str(SAMPLE_DIR / "landmarks.json"), "--out", str(tmp_path), "--levels", "1"],
+                          capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr
+    out = json.loads((tmp_path / "report.json").read_text())["outcome"]
+    assert set(out) == OUTCOME_FIELDS and out["ok"] is True and out["folds_left"] == 0
+    assert 0 < out["seen_rms_mm"] < 1.5 and out["seen_vertices"] > 1000
+    assert isinstance(out["marker_rms_mm"], float)                   # the sample's landmark file has markers
+    # the log states folds left, the seen-skin RMS with its vertex count, the marker error
+    line = next(s for s in proc.stdout.splitlines() if "fit ok" in s)
+    assert (f"{out['folds_left']} folded triangles left" in line
+            and f"seen-skin RMS {out['seen_rms_mm']:.2f} mm over {out['seen_vertices']} vertices" in line
+            and f"marker RMS {out['marker_rms_mm']:.2f} mm" in line), line
+    assert "headadapt: warning:" not in proc.stderr
+
+
+def test_batch_exits_3_with_warnings_when_the_fit_does_not_reach_the_scan(tmp_path):
+    scan, marks = fringe_scan(tmp_path)
+    out = tmp_path / "out"
+    proc = subprocess.run([sys.executable, "-m", "headadapt_addon.batch", "adapt", "--scan", str(scan), "--landmarks",
+                           str(marks), "--out", str(out), "--levels", "0", "--blend", str(out / "fringe.blend")],
+                          capture_output=True, text=True)
+    assert proc.returncode == 3, proc.stdout + proc.stderr
+    rep = json.loads((out / "report.json").read_text())
+    outcome = rep["outcome"]
+    assert set(outcome) == OUTCOME_FIELDS and outcome["ok"] is False and outcome["seen_rms_mm"] > 1.5
+    assert "5.1" in rep["dropped_fdps"]
+    # one warning line each on stderr: the wrong click (dropped) and why the fit cannot be trusted
+    warned = [s for s in proc.stderr.splitlines() if s.startswith("headadapt: warning: ")]
+    assert len(warned) == len(outcome["warnings"]) >= 2, proc.stderr
+    assert any(s.startswith("headadapt: warning: FDP 5.1:") and s.endswith("(dropped)") for s in warned), warned
+    assert any("did not reach the scan" in s for s in warned), warned
+    assert any(w.startswith("FDP 5.1:") for w in outcome["warnings"])
+    assert any("fit NOT trustworthy" in s for s in proc.stdout.splitlines()), proc.stdout
+    # the results are still written
+    assert (out / "adapted_head.obj").is_file() and (out / "fringe.blend").is_file()
+
+
+def test_folder_mode_counts_an_untrustworthy_fit_and_exits_3(tmp_path):
+    fringe_scan(tmp_path / "scans")
+    proc = subprocess.run([sys.executable, "-m", "headadapt_addon.batch", "folder", "--folder", str(tmp_path / "scans"),
+                           "--out", str(tmp_path / "out"), "--levels", "0", "--jobs", "1"], capture_output=True, text=True)
+    assert proc.returncode == 3, proc.stdout + proc.stderr
+    summary = json.loads((tmp_path / "out" / "summary.json").read_text())
+    assert summary["done"] == 1 and summary["done_with_warnings"] == 1 and summary["failed"] == 0
+    scan = summary["scans"][0]
+    assert scan["ok"] is True and scan["outcome_ok"] is False
+    assert any("did not reach the scan" in w for w in scan["warnings"])
+    assert "headadapt: warning: fringe.obj: " in proc.stderr and "WARN fringe.obj" in proc.stdout
+    assert (tmp_path / "out" / "fringe" / "adapted_head.obj").is_file()

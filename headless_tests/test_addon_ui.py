@@ -119,3 +119,55 @@ def test_every_panel_draws_on_empty_and_full_scenes(addon, tpl):
     full = draw_all()
     assert any(t.startswith("In scene:") for t in full)
     assert "Calibration FDPs: all placed" in full
+
+
+def _report_labels(rep):
+    """(text, icon) of every label the Report panel draws for the report dict rep."""
+    import json
+
+    import bpy
+    from headadapt_addon import ui
+
+    bpy.context.scene.headadapt.report_json = json.dumps(rep)
+    rec = _Recorder()
+    ui.draw_report(rec, bpy.context)
+    return [(kw.get("text", ""), kw.get("icon")) for name, _a, kw in rec.calls if name == "label"]
+
+
+def test_report_panel_shows_the_outcome_and_every_warning(addon):
+    why = ("24.1 mm from where the scan's surface and the other clicks put it (limit 10.0 mm): "
+           "probably clicked at the wrong spot")
+    far = ("the adapted face lies 2.88 mm RMS from the scan over 1872 seen vertices (limit 1.50 mm): "
+           "the fit did not reach the scan")
+    warnings = [f"FDP 5.1: {why}", "3 folded triangles left in the adapted skin", far]
+    rep = {"levels": [{"level": 0, "pairs": 73, "E_d": 7.1, "E": 27.9, "seconds": 0.5}], "best_level": 0,
+           "stopped_because": "last level reached", "flagged_fdps": {"5.1": why}, "dropped_fdps": ["5.1"],
+           "outcome": {"folds_left": 3, "seen_rms_mm": 2.88, "seen_vertices": 1872, "marker_rms_mm": 10.45,
+                       "warnings": warnings, "ok": False}}
+    labels = _report_labels(rep)
+    texts = [t for t, _icon in labels]
+    assert ("Fit NOT trustworthy", "ERROR") in labels
+    assert "3 folded triangles left" in texts
+    assert "seen-skin RMS 2.88 mm over 1872 vertices" in texts and "marker RMS 10.45 mm" in texts
+    # each warning: one alert-icon label, continued (wrapped, not cut) on labels with a blank icon
+    shown, i = [], 0
+    while i < len(labels):
+        text, icon = labels[i]
+        if icon == "ERROR" and text != "Fit NOT trustworthy":
+            parts = [text]
+            while i + 1 < len(labels) and labels[i + 1][1] == "BLANK1":
+                i += 1
+                parts.append(labels[i][0])
+            shown.append(" ".join(parts))
+        i += 1
+    assert shown == [warnings[0] + " (dropped)", *warnings[1:]]
+    assert all(len(t) <= 60 for t, icon in labels if icon in ("ERROR", "BLANK1"))    # the sidebar is narrow
+    # a trustworthy fit: a check mark, its figures, no alert
+    rep["outcome"] = {"folds_left": 0, "seen_rms_mm": 0.22, "seen_vertices": 2058, "marker_rms_mm": None,
+                      "warnings": [], "ok": True}
+    rep["flagged_fdps"], rep["dropped_fdps"] = {}, []
+    labels = _report_labels(rep)
+    assert ("Fit ok", "CHECKMARK") in labels and not any(icon == "ERROR" for _t, icon in labels)
+    texts = [t for t, _icon in labels]
+    assert "0 folded triangles left" in texts and "seen-skin RMS 0.22 mm over 2058 vertices" in texts
+    assert not any(t.startswith("marker RMS") for t in texts)          # no markers given

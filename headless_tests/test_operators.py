@@ -26,11 +26,11 @@ def ui_scene():
     headadapt_addon.unregister()
 
 
-def _add_scan(name="scan", with_faces=True):
+def _add_scan(name="scan", with_faces=True, path=SAMPLE_DIR / "scan.ply"):
     import bpy
     from headadapt_addon import bridge
 
-    v, t = meshio.read_mesh(SAMPLE_DIR / "scan.ply")
+    v, t = meshio.read_mesh(path)
     mesh = bridge.new_mesh(name, v, t) if with_faces else bridge.new_mesh(name, v, np.zeros((0, 3), int))
     obj = bpy.data.objects.new(name, mesh)
     bpy.context.scene.collection.objects.link(obj)
@@ -44,7 +44,7 @@ def _verts(obj):
     return bridge.mesh_arrays(obj, world=False)[0]
 
 
-def test_the_whole_workflow_runs_through_bpy_ops(ui_scene):
+def test_the_whole_workflow_runs_through_bpy_ops(ui_scene, capfd):
     import bpy
     from headadapt_addon import landmarks
 
@@ -77,7 +77,9 @@ def test_the_whole_workflow_runs_through_bpy_ops(ui_scene):
         landmarks.set_landmarks(scan, clicks)
         assert bpy.ops.headadapt.calibrate() == {"FINISHED"}
         assert 0 <= bpy.context.scene.headadapt.calibration_rms_mm < 10
+        capfd.readouterr()
         assert bpy.ops.headadapt.adapt() == {"FINISHED"}
+        said = capfd.readouterr()
         root = bpy.context.scene.headadapt.result_root
         assert root is not None and root.users_collection[0].name.startswith("HeadAdapt result")
         skin = next(o for o in root.children_recursive if o.get("headadapt_part") == "skin")
@@ -85,7 +87,51 @@ def test_the_whole_workflow_runs_through_bpy_ops(ui_scene):
         rep = json.loads(bpy.context.scene.headadapt.report_json)
         assert rep["levels"][rep["best_level"]]["E_d_rms_mm"] < 1.0
         assert rep["unfolded"]["folded_left"] == 0 and rep["calibration"]["scan_pieces_turned"] == 0
+        # the operator's INFO report states the seen-skin RMS and the folds left (Blender prints reports)
+        out = rep["outcome"]
+        info = next(s for s in (said.out + said.err).splitlines() if s.startswith("Info: adapted:"))
+        assert "fit ok" in info and "0 folded triangles left" in info, info
+        assert f"seen-skin RMS {out['seen_rms_mm']:.2f} mm over {out['seen_vertices']} vertices" in info, info
         np.testing.assert_array_equal(_verts(scan), before)     # the scan is never changed
+
+
+def test_adapt_warns_when_the_fit_cannot_be_trusted_and_the_report_panel_says_why(ui_scene, tmp_path, capfd):
+    """Level 0 only on the sample scan with a fringe over the forehead and a wrong click (the real
+    untrustworthy fit of test_adapt.fringe_scan): the operator finishes (the result is there to
+    look at) but reports a WARNING naming why, and the Report panel shows the outcome and each warning."""
+    import bpy
+    from headadapt_addon import ui
+
+    from headless_tests.test_adapt import fringe_scan
+    from headless_tests.test_addon_ui import _Recorder
+
+    scan_path, marks = fringe_scan(tmp_path)
+    with bpy.context.temp_override(**ui_scene):
+        scan = _add_scan(path=scan_path)
+        bpy.context.scene.headadapt.scan = scan
+        assert bpy.ops.headadapt.import_landmarks(filepath=str(marks)) == {"FINISHED"}
+        capfd.readouterr()
+        assert bpy.ops.headadapt.adapt(levels=0) == {"FINISHED"}
+        said = capfd.readouterr()
+        rep = json.loads(bpy.context.scene.headadapt.report_json)
+        out = rep["outcome"]
+        assert out["ok"] is False and bpy.context.scene.headadapt.result_root is not None
+        printed = (said.out + said.err).splitlines()
+        assert not any(s.startswith("Info: adapted") for s in printed), printed
+        warning = next(s for s in printed if s.startswith("Warning: adapted:"))
+        assert "fit NOT trustworthy" in warning and "did not reach the scan" in warning, warning
+        assert "FDP 5.1:" in warning and "(dropped)" in warning, warning
+        rec = _Recorder()
+        ui.draw_report(rec, bpy.context)
+    labels = [(kw.get("text", ""), kw.get("icon")) for name, _a, kw in rec.calls if name == "label"]
+    texts = [t for t, _icon in labels]
+    assert ("Fit NOT trustworthy", "ERROR") in labels
+    assert f"{out['folds_left']} folded triangles left" in texts
+    assert f"seen-skin RMS {out['seen_rms_mm']:.2f} mm over {out['seen_vertices']} vertices" in texts
+    flowed = " ".join(texts)
+    for w in out["warnings"]:
+        assert w in flowed, w
+    assert sum(icon == "ERROR" for _t, icon in labels) == 1 + len(out["warnings"])
 
 
 def test_undo_restores_the_scene_after_adapt(ui_scene):
