@@ -67,7 +67,7 @@ def rigid_from_fdps(part_verts, template_fdps, adapted_fdps, x_pair, y_pair, ref
 HIDDEN_REGIONS = ("mouth_interior", "eye_socket_l", "eye_socket_r")
 POCKET_REACH = 0.015          # bone points this close to the pockets' skin may end in one, m
 EYE_REACH = 0.010             # an eye's surface is looked for this far beyond the eye, m
-EYE_TOLERANCE = 0.002         # an eye standing out of the scan by more than this goes back, m
+EYE_TOLERANCE = 0.0008        # an eye standing out of the scan by more than this goes back, m
 LID_GAP = 0.001               # an eye pushed back stops this far behind the scanned lid, m
 ORBIT_FULL, ORBIT_FADE = 0.003, 0.020   # the orbit moves with its eye out to these distances beyond it, m
 
