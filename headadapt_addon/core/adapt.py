@@ -54,6 +54,7 @@ class AdaptOptions:
     feature_weight: float = 1.0         # weight of a feature-mesh pair (a surface pair weighs 1)
     curvature_weight: float = 1.0       # weight of a curvature pair
     affine_iterations: int = 8          # ICP rounds of the whole-skin affine map before the clicks' RBF
+    affine_skip: tuple = ()             # regions the affine map does not fit
     affine_ridge: float = 1e-3          # how firmly the affine map's linear part is held to the identity
     rays_from_level: int = 2            # from this level on, pairs along the template's normal (sec 4.1)
     fold_rounds: int = 2                # refits of a level without pairs around the triangles it folded
@@ -242,6 +243,8 @@ class _Fit:
         adjacency = geometry.neighbour_mean(self.tris, len(self.V))
         self.ring = (adjacency + sparse.identity(len(self.V))).tocsr()   # a vertex and its neighbours
         self.quiet = np.zeros(len(self.V), bool)     # vertices a level leaves to its smoothness term
+        # the global affine map is fitted to these regions (a scan's neck is cut and posed anyhow)
+        self.affine_mask = ~np.isin(tpl.region, [tpl.region_names.index(r) for r in options.affine_skip])
         self._at_skin = {}
         self._bases = {}
         self.warm = {}              # last coefficients per support: the next ICP round starts there
@@ -324,7 +327,7 @@ def global_affine(fit, clicks, reach, iterations, ridge=1e-3):
     centre = fit.V.mean(axis=0)
     fit.functions = [AffineMap(np.eye(3), np.zeros(3))]
     for _ in range(iterations):
-        pairs = surface_pairs(fit, reach) + clicks
+        pairs = surface_pairs(fit, reach, mask=fit.affine_mask) + clicks
         X = np.c_[pairs.p - centre, np.ones(len(pairs))]
         XtW = X.T * pairs.w
         reg = ridge * pairs.w.sum() * np.diag([np.mean((fit.V - centre) ** 2)] * 3 + [0.0])
@@ -390,7 +393,7 @@ def curvature_pairs(fit, face_box, count, reach, spread):
     return Pairs(tp, scan.verts[src[ok]], np.full(len(tp), fit.options.curvature_weight))
 
 
-def surface_pairs(fit, reach, along_normal=False):
+def surface_pairs(fit, reach, along_normal=False, mask=None):
     """Pairs of the seen template vertices with the scan, kept when within `reach`, the normals agree
     within 60 degrees and the point is not on a hole's border, weighted by region and by a robust
     (Cauchy) weight on the distance. Coarse levels take the closest point (non-rigid ICP: the
@@ -398,7 +401,7 @@ def surface_pairs(fit, reach, along_normal=False):
     (the paper's rays: no sideways pull, so nothing folds where the scan lacks the template's detail)."""
     cur = fit.current()
     normals = geometry.vertex_normals(cur, fit.tris)
-    use = np.flatnonzero((fit.vert_w > 0) & ~fit.near_seam & ~fit.quiet)
+    use = np.flatnonzero((fit.vert_w > 0) & ~fit.near_seam & ~fit.quiet & (True if mask is None else mask))
     if along_normal:
         hit = fit.scan.query.ray_cast(cur[use], normals[use], reach)
         f = np.where(hit.hit, hit.face, 0)
