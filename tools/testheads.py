@@ -161,7 +161,7 @@ def _morph(rng, n_targets, identity=1.0):
 
     MakeHuman's macro model at full weight: the race targets (race-gender-age) mixed by random race
     proportions, a random gender and a random age between young and old, times identity; one
-    muscle/weight target; and n_targets random modifier targets at 0.4-1.0."""
+    muscle/weight target; and n_targets random modifier targets at 0.4-1.0 (no modifier twice)."""
     src = _source()
     by_cat, macro = _target_names(src)
     used = []
@@ -182,9 +182,16 @@ def _morph(rng, n_targets, identity=1.0):
     w = float(rng.uniform(0.3, 1.0)) * identity
     disp += w * _target_cached(name)
     used.append((name.split("/")[-1], round(w, 3)))
-    cats = rng.choice(TARGET_CATEGORIES, size=n_targets, replace=True)
-    for cat in cats:
-        name = by_cat[cat][rng.integers(len(by_cat[cat]))]
+    modifiers = set()          # each modifier once, in one direction (MakeHuman's range: weight <= 1)
+    for cat in rng.choice(TARGET_CATEGORIES, size=n_targets, replace=True):
+        for _ in range(20):
+            name = by_cat[cat][rng.integers(len(by_cat[cat]))]
+            modifier = name.split("/")[-1].rsplit("-", 1)[0]
+            if modifier not in modifiers:
+                break
+        else:
+            continue
+        modifiers.add(modifier)
         w = float(rng.uniform(0.4, 1.0)) * identity
         disp += w * _target_cached(name)
         used.append((name.split("/")[-1], round(w, 3)))
@@ -263,6 +270,8 @@ def seen_triangles(verts, tris, positions, targets=None, tol=SEEN_TOLERANCE, min
         dist = np.linalg.norm(d, axis=1)
         d /= dist[:, None]
         ok = -np.einsum("ij,ij->i", normal[idx], d) > min_cos
+        if not ok.any():
+            return ok
         hits = query.ray_cast(np.repeat(p[None], ok.sum(), axis=0), d[ok], dist[ok] + tol, both_ways=False)
         ok[ok] = ~hits.hit | (hits.face == idx[ok]) | (np.nan_to_num(hits.t, nan=np.inf) >= dist[ok] - tol)
         return ok

@@ -25,6 +25,7 @@ peers are not. Every figure is in mm of the true head (the scan's unit divided o
   marker RMS      the held-out FDPs (the template's face + barycentrics on the adapted vertices)
                   against their true positions
   s               seconds of the method (peers: without the shared calibration)
+A peer that raises on a head counts as failed there (inf), and the run goes on.
 --real has no ground truth: surface RMS over the face vertices that every method puts on the
 scan's inside (closest point on no border triangle), in the template's mm, and seconds.
 """
@@ -58,6 +59,8 @@ def skin_fdp(tpl, verts, name):
 
 def measure(tpl, head, verts_scan, seen_face, query):
     """Figures (mm of the true head) of an adapted skin given in the scan frame."""
+    if verts_scan is None:            # the method failed
+        return {"corr_rms": np.inf, "corr_p95": np.inf, "surf_rms": np.inf, "marker_rms": np.inf}
     s = head.similarity[0]
     d = np.linalg.norm(verts_scan[seen_face] - head.true_template[seen_face], axis=1) / s * 1000
     surf = query.closest_points(verts_scan[seen_face])[2] / s * 1000
@@ -103,9 +106,16 @@ def run_methods(tpl, scan_verts, scan_tris, clicks, markers=None, nricp=True):
     t0 = time.perf_counter()
     res = adapt.adapt(tpl, scan_verts, scan_tris, clicks, markers=markers)
     out = {"headadapt": (res.verts_scan, time.perf_counter() - t0)}
-    out["rbf_clicks"] = peer_rbf(tpl, clicks, res.similarity)
+    peers = [("rbf_clicks", lambda: peer_rbf(tpl, clicks, res.similarity))]
     if nricp:
-        out["nricp_amberg"] = peer_nricp(tpl, scan_verts, scan_tris, clicks, res.similarity)
+        peers.append(("nricp_amberg", lambda: peer_nricp(tpl, scan_verts, scan_tris, clicks, res.similarity)))
+    for name, run in peers:
+        t0 = time.perf_counter()
+        try:
+            out[name] = run()
+        except Exception as exc:      # a peer that fails on a scan fails that scan (None), the run goes on
+            print(f"  {name} failed: {type(exc).__name__}: {exc}")
+            out[name] = (None, time.perf_counter() - t0)
     return out, res
 
 
@@ -204,10 +214,13 @@ def real(args):
         inside = face.copy()
         dist = {}
         for m, (v, _) in out.items():
+            if v is None:
+                continue
             _, f, d = query.closest_points(v)
             inside &= ~border[f]
             dist[m] = d * res.similarity.scale * 1000
-        cells = [f"{np.sqrt(np.mean(dist[m][inside] ** 2)):5.2f} mm {out[m][1]:5.1f}s" for m in methods]
+        cells = [f"{np.sqrt(np.mean(dist[m][inside] ** 2)):5.2f} mm {out[m][1]:5.1f}s" if m in dist
+                 else f"failed {out[m][1]:5.1f}s" for m in methods]
         print(f"{path.stem.replace('_fdps', ''):14s} {len(clicks):3d} {inside.sum():5d} " + " | ".join(
             f"{c:^14s}" for c in cells), flush=True)
 
