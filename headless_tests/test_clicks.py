@@ -1,0 +1,73 @@
+"""Clicks as people make them, on scan-like generated heads (tools/testheads.py): right clicks are
+never dropped, a slip of the hand is, swapped left/right labels are put right and named."""
+import numpy as np
+import pytest
+
+from headadapt_addon.core import adapt, mpeg4, spatial
+from headadapt_addon.core.template import load_template
+
+MM = 1000.0
+
+
+@pytest.fixture(scope="module")
+def tpl():
+    return load_template()
+
+
+@pytest.fixture(scope="module")
+def testheads():
+    module = pytest.importorskip("tools.testheads")
+    try:
+        module.cached_wheel()
+    except FileNotFoundError as exc:   # the CC0 wheel is not cached (offline machine)
+        pytest.skip(str(exc))
+    return module
+
+
+def _light(testheads, seed):
+    """A scan-like head with a lighter remesh (one subdivision, no decimation): same anatomy, holes,
+    noise, pose and clicks, generated in a fifth of the time."""
+    return testheads.make_head(seed, style="scan", subdiv=1, decimate=1.0)
+
+
+def test_no_right_click_is_dropped_on_fifty_heads(tpl, testheads):
+    flagged = {}
+    for seed in range(200, 250):
+        head = _light(testheads, seed)
+        res = adapt.adapt(tpl, head.scan_verts, head.scan_tris, head.clicks_8, adapt.AdaptOptions(max_levels=0))
+        if res.flagged or res.calibration_info["handedness"]["swapped"]:
+            flagged[seed] = (res.flagged, res.calibration_info["handedness"]["swapped"])
+    assert not flagged, flagged
+
+
+@pytest.mark.parametrize("seed", [250, 251, 252])
+def test_a_click_20_mm_off_is_found_and_dropped(tpl, testheads, seed):
+    head = _light(testheads, seed)
+    clicks = dict(head.clicks_8)
+    q = spatial.MeshQuery(head.scan_verts, head.scan_tris)
+    unit = head.similarity[0]
+    rng = np.random.default_rng(seed)
+    name = ["8.3", "3.12", "2.10"][seed % 3]
+    # 20 mm away on the surface: push along a direction across the surface until the snapped click
+    # lies 20 mm from the right one
+    normal = q.closest_points(clicks[name][None])[0][0] - clicks[name]
+    direction = rng.normal(size=3)
+    direction -= direction @ normal * normal / max(normal @ normal, 1e-30)
+    direction /= np.linalg.norm(direction)
+    p = clicks[name]
+    for reach in np.linspace(20.0, 60.0, 41):
+        p = q.closest_points((clicks[name] + direction * reach * 1e-3 * unit)[None])[0][0]
+        if np.linalg.norm(p - clicks[name]) / unit * MM >= 20.0:
+            break
+    clicks[name] = p
+    res = adapt.adapt(tpl, head.scan_verts, head.scan_tris, clicks, adapt.AdaptOptions(max_levels=0))
+    assert set(res.dropped) == {name}, (name, res.flagged)
+    assert any(w.startswith(f"FDP {name}:") for w in res.outcome["warnings"])
+
+
+def test_labels_from_the_viewer_s_side_are_put_right_and_named(tpl, testheads):
+    head = _light(testheads, 253)
+    swapped = {(mpeg4.FDPS[k].mirror or k): v for k, v in head.clicks_8.items()}
+    res = adapt.adapt(tpl, head.scan_verts, head.scan_tris, swapped, adapt.AdaptOptions(max_levels=0))
+    assert res.calibration_info["handedness"]["all"] and not res.dropped
+    assert any("viewer's side" in w for w in res.outcome["warnings"])
