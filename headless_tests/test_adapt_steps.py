@@ -217,3 +217,14 @@ def test_clicks_are_evidence_not_law(tpl, case):
         noisy = adapt.adapt(tpl, scan_v, scan_t, moved)
         costs.append(_corr_mm(tpl, noisy.verts_scan, truth) - _corr_mm(tpl, exact.verts_scan, truth))
     assert max(costs) < 1.0, costs
+
+
+def test_a_closed_mouth_s_lip_corners_may_share_one_click(tpl, case):
+    clicks = dict(case[3])
+    fdps = tpl.fdp_points()
+    clicks["8.4"] = _deform(fdps["8.4"][None])[0]
+    clicks["2.5"] = clicks["8.4"].copy()             # inner and outer corner: one spot when closed
+    assert set(calibration.validate_landmarks(clicks)) == set(clicks)
+    clicks["3.12"] = clicks["3.7"].copy()            # two eye corners at one spot: a double click
+    with pytest.raises(Exception, match="same spot"):
+        calibration.validate_landmarks(clicks)

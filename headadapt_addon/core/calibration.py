@@ -125,6 +125,7 @@ def calibrate(scan_fdps, template_fdps, method="auto"):
     return candidates[best], info
 
 
+MAY_COINCIDE = (("2.4", "8.3"), ("2.5", "8.4"), ("2.2", "2.3"))   # FDPs one click may rightly share
 SWAP_GAIN = 0.5      # a relabelling counts only if it at least halves the calibration residual
 
 
@@ -191,6 +192,9 @@ def validate_landmarks(points, need=(), what="scan"):
     spread = float(np.ptp(p, axis=0).max())
     d = np.linalg.norm(p[:, None] - p[None], axis=2)
     d[np.tril_indices(len(p))] = np.inf
+    for a, b in MAY_COINCIDE:              # a closed mouth's inner and outer lip corners are one spot
+        if a in out and b in out:
+            d[min(names.index(a), names.index(b)), max(names.index(a), names.index(b))] = np.inf
     i, j = np.unravel_index(np.argmin(d), d.shape)
     if spread == 0 or d[i, j] < 1e-3 * spread:
         raise LandmarkError(f"FDP {names[i]} and FDP {names[j]} on the {what} are at the same spot: "
