@@ -210,7 +210,13 @@ def main(argv=None):
 
 
 if __name__ == "__main__":
-    code = main()
+    try:
+        code = main()
+    except Exception:          # a bug, not bad input: Blender would print it and still exit 0
+        import traceback
+        traceback.print_exc()
+        print("headadapt: internal error (the traceback above); please report it", file=sys.stderr)
+        code = 1
     if "bpy" in sys.modules and getattr(sys.modules["bpy"].app, "background", False) and code:
         sys.stderr.flush()
     sys.exit(code)

@@ -483,6 +483,17 @@ def fit_level(fit, clicks, k, fixed=None, rounds=None):
     return pairs, sigma
 
 
+def _cg_rtol_keyword():
+    """scipy 1.12 renamed cg's relative tolerance tol -> rtol (Debian's Blender 3.4 brings scipy 1.10)."""
+    import inspect
+
+    from scipy.sparse.linalg import cg
+    return "rtol" if "rtol" in inspect.signature(cg).parameters else "tol"
+
+
+_CG_RTOL = _cg_rtol_keyword()
+
+
 def _solve_spd(A, b, fit, sigma, rtol=1e-5):
     """Solve the symmetric positive definite A x = b (k right-hand sides) of a level's ICP round. The
     first round of a level factorises A (sparse LU); the later rounds change A little (other pairs,
@@ -498,7 +509,7 @@ def _solve_spd(A, b, fit, sigma, rtol=1e-5):
     x0 = fit.warm[sigma]
     out = np.empty_like(b)
     for c in range(b.shape[1]):
-        out[:, c], info = cg(A, b[:, c], x0=x0[:, c], rtol=rtol, atol=0.0, maxiter=12, M=M)
+        out[:, c], info = cg(A, b[:, c], x0=x0[:, c], atol=0.0, maxiter=12, M=M, **{_CG_RTOL: rtol})
         if info > 0:            # not converged: factorise this system
             fit.factor[sigma] = splu(A.tocsc(), permc_spec="MMD_AT_PLUS_A")
             return fit.factor[sigma].solve(np.ascontiguousarray(b))
