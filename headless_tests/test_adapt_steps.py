@@ -122,7 +122,6 @@ def test_csrbf_level_fits_and_its_stiffness_smooths(tpl, case):
     errs, bends = [], []
     for stiffness in (1e-4, 10.0):
         f = adapt.csrbf_level(fit, pairs, 0.024, stiffness)
-        fit.factor.clear()
         fit.warm.clear()
         off = f(tpl.skin.verts)
         errs.append(np.sqrt(np.mean(np.sum((tpl.skin.verts[use] + off[use] - truth[use]) ** 2, axis=1))) * MM)
@@ -228,3 +227,22 @@ def test_a_closed_mouth_s_lip_corners_may_share_one_click(tpl, case):
     clicks["3.12"] = clicks["3.7"].copy()            # two eye corners at one spot: a double click
     with pytest.raises(Exception, match="same spot"):
         calibration.validate_landmarks(clicks)
+
+
+def test_a_level_s_solve_matches_a_direct_solve_warm_or_cold_and_falls_back_to_lu():
+    """adapt._solve_spd (Jacobi-preconditioned CG, LU when CG does not converge) on a level-like
+    system: a smoothness Gram matrix plus a ridge, three right-hand sides, one of them zero."""
+    from scipy import sparse
+    from scipy.sparse.linalg import spsolve
+
+    rng = np.random.default_rng(3)
+    n = 400
+    lap = sparse.diags([-np.ones(n - 1), 2.0 * np.ones(n), -np.ones(n - 1)], [-1, 0, 1])
+    A = (lap.T @ lap + sparse.diags(rng.uniform(0.05, 1.0, n))).tocsr()
+    b = np.c_[rng.standard_normal(n), np.zeros(n), rng.standard_normal(n)]
+    exact = np.column_stack([spsolve(A.tocsc(), b[:, c]) for c in range(3)])
+    scale = np.abs(exact).max()
+    for x0 in (None, exact + 0.01 * rng.standard_normal(exact.shape)):
+        assert np.abs(adapt._solve_spd(A, b, x0) - exact).max() < 1e-3 * scale
+    # two CG steps cannot solve it: the LU answers, exactly
+    assert np.abs(adapt._solve_spd(A, b, maxiter=2) - exact).max() < 1e-9 * scale

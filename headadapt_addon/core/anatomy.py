@@ -118,8 +118,14 @@ def keep_inside(tpl, bone_template, bone_mapped, skin_adapted, clearance=0.0015)
         if len(still):                 # out through the pocket's lining, `clearance` into the tissue
             pocket_t = _pocket_tris(tpl, hidden)
             lining, face, _ = MeshQuery(skin_adapted, pocket_t).closest_points(out[still])
-            out[still] = lining - clearance[still, None] * face_normals(skin_adapted, pocket_t)[face]
-            still = still[winding_numbers(out[still], skin_adapted, tpl.skin.tris) < 0.5]
+            inward = -clearance[still, None] * face_normals(skin_adapted, pocket_t)[face]
+            # behind a thin lip the tissue may be thinner than the clearance: a shorter step then
+            for share in (1.0, 0.5, 0.25):
+                out[still] = lining + share * inward
+                outside = winding_numbers(out[still], skin_adapted, tpl.skin.tris) < 0.5
+                still, lining, inward = still[outside], lining[outside], inward[outside]
+                if not len(still):
+                    break
         if len(still):                 # else toward the bone's centre
             centre = np.asarray(bone_mapped).mean(axis=0)
             lo, hi = np.zeros(len(still)), np.ones(len(still))
