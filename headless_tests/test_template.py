@@ -23,6 +23,11 @@ def fdp(tpl):
     return tpl.fdp_points()
 
 
+@pytest.fixture(scope="module")
+def click(tpl):
+    return tpl.click_points()
+
+
 def _ray_depth(origin, direction, verts, tris):
     """Distance along the ray to the nearest triangle hit (Moller-Trumbore), inf if none."""
     a, b, c = (verts[tris[:, k]] for k in range(3))
@@ -65,10 +70,12 @@ def test_fdps_sit_on_the_part_the_standard_puts_them(tpl):
         assert parts[mpeg4.FDPS[name].part] == ref["part"], name
 
 
-def test_mirrored_fdp_pairs_are_symmetric_within_1mm(fdp):
-    for name, p in fdp.items():
+@pytest.mark.parametrize("points", ["fdp", "click"])
+def test_mirrored_fdp_pairs_are_symmetric_within_1mm(points, request):
+    pts = request.getfixturevalue(points)
+    for name, p in pts.items():
         partner = mpeg4.FDPS[name].mirror
-        q = fdp[partner] if partner else p
+        q = pts[partner] if partner else p
         assert np.linalg.norm(p - q * [-1, 1, 1]) < 1e-3, (name, partner)
 
 
@@ -87,7 +94,142 @@ def test_chin_bottom_is_the_lowest_midline_point_of_the_chin(tpl, fdp):
     assert fdp["2.10"][2] > fdp["2.1"][2]
 
 
+# What a person sees of the template: every part but the bones, first hits of rays.
+_SEEN_PARTS = ("skin", "eye_l", "eye_r", "teeth_upper", "teeth_lower", "tongue")
+_HIDDEN_REGIONS = ("mouth_interior", "eye_socket_l", "eye_socket_r")
+
+
+def _front_view(tpl, xs, zs):
+    """Orthographic view from the front (rays along +Y from each (x, z) of the grid): the part
+    (index into _SEEN_PARTS) and face first hit per pixel (len(zs), len(xs)); -1 where none."""
+    verts = [tpl.parts[p].verts for p in _SEEN_PARTS]
+    tris = [tpl.parts[p].tris for p in _SEEN_PARTS]
+    corners = np.concatenate([v[t] for v, t in zip(verts, tris)])
+    part = np.concatenate([np.full(len(t), i) for i, t in enumerate(tris)])
+    face = np.concatenate([np.arange(len(t)) for t in tris])
+    a, b, c = corners[:, 0], corners[:, 1], corners[:, 2]
+    lo, hi = corners.min(axis=1), corners.max(axis=1)
+    out_part = np.full((len(zs), len(xs)), -1)
+    out_face = np.full((len(zs), len(xs)), -1)
+    for r, z in enumerate(zs):
+        k = np.flatnonzero((lo[:, 2] <= z) & (hi[:, 2] >= z) & (hi[:, 0] >= xs[0]) & (lo[:, 0] <= xs[-1]))
+        # the (x, z) barycentrics of each pixel in each candidate triangle; depth y by the same weights
+        e1, e2 = (b[k] - a[k])[:, [0, 2]], (c[k] - a[k])[:, [0, 2]]
+        det = e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]
+        ok = np.abs(det) > 1e-18
+        k, e1, e2, det = k[ok], e1[ok], e2[ok], det[ok]
+        px, pz = xs[None] - a[k, 0, None], (z - a[k, 2])[:, None]
+        u = (px * e2[:, 1, None] - pz * e2[:, 0, None]) / det[:, None]
+        w = (pz * e1[:, 0, None] - px * e1[:, 1, None]) / det[:, None]
+        inside = (u >= -1e-9) & (w >= -1e-9) & (u + w <= 1 + 1e-9)
+        y = a[k, 1, None] + u * (b[k, 1] - a[k, 1])[:, None] + w * (c[k, 1] - a[k, 1])[:, None]
+        y = np.where(inside, y, np.inf)
+        first = np.argmin(y, axis=0)
+        seen = np.isfinite(y[first, np.arange(len(xs))])
+        out_part[r, seen] = part[k[first[seen]]]
+        out_face[r, seen] = face[k[first[seen]]]
+    return out_part, out_face
+
+
+def _largest_component(mask):
+    from scipy import ndimage
+
+    label, count = ndimage.label(mask)
+    assert count > 0
+    return label == 1 + np.argmax(np.bincount(label.ravel())[1:])
+
+
+def _end_of(mask, xs, zs, lateral):
+    """(x, z) of the lateral (largest x) or medial end of a pixel set, at its rows' middle there."""
+    rows, cols = np.nonzero(mask)
+    i = cols.max() if lateral else cols.min()
+    return np.array([xs[i], np.median(zs[rows[cols == i]])])
+
+
+def _camera_sees(tpl, camera, point, tol=5e-5):
+    """Whether the ray from camera to point meets no seen part more than tol metres before it."""
+    reach = np.linalg.norm(point - camera)
+    d = (point - camera) / reach
+    return all(_ray_depth(camera, d, tpl.parts[p].verts, tpl.parts[p].tris) >= reach - tol for p in _SEEN_PARTS)
+
+
+# Skin FDPs people do not click on a front or 45-degree picture: the top and back of the skull
+NOT_CLICKED_FROM_THE_FRONT = {"11.4": "top of the skull (seen from above)", "11.6": "back of the skull"}
+
+
+def test_clickable_skin_fdps_are_seen_from_a_camera_and_lie_on_the_outer_skin(tpl, click):
+    """Each skin FDP a person clicks is the first thing a camera 1 m away sees along its ray: a
+    frontal camera or one turned 45 degrees to its side (ears: or from the side, 90 degrees), level
+    with the middle of the head; and it lies on the outer skin, not the mouth's or sockets' lining."""
+    v = tpl.skin.verts
+    centre = 0.5 * (v.min(axis=0) + v.max(axis=0))
+    centre[0] = 0.0
+    hidden = np.isin(tpl.region, [tpl.region_names.index(r) for r in _HIDDEN_REGIONS])
+    failed = []
+    for name, ref in tpl.meta["fdps"].items():
+        if ref["part"] != "skin" or name in NOT_CLICKED_FROM_THE_FRONT:
+            continue
+        p = click[name]
+        ref = tpl.meta["clicks"].get(name, ref)
+        yaws = [0.0] + [45.0 * s for s in (1, -1) if s * p[0] >= -1e-6]
+        if name.startswith("10."):
+            yaws.append(90.0 * np.sign(p[0]))
+        cams = [centre + np.array([np.sin(np.radians(y)), -np.cos(np.radians(y)), 0.0]) for y in yaws]
+        seen = [y for y, c in zip(yaws, cams) if _camera_sees(tpl, c, p)]
+        tri = tpl.skin.tris[ref["face"]]
+        on = tri[np.asarray(ref["bary"]) > 1e-9]
+        if not seen or hidden[on].any():
+            failed.append((name, "seen from no camera" if not seen else "on the hidden lining"))
+    assert not failed, failed
+
+
+def test_eye_corners_are_clicked_at_the_visible_canthi_and_lid_centres_on_the_visible_margins(tpl, click):
+    """The eye's opening is what the front sees of the eyeball; its lateral / medial ends are the
+    canthi (3.7 / 3.11, 3.12 / 3.8): the FDPs lie within 1.5 mm of them in the front view, and in
+    front of the eyeball there. 3.1 / 3.3 lie on the lids within 1 mm above / below the opening."""
+    step = 1e-4
+    for side, part, outer, inner, up, down, pupil in (
+            ("eye_l", 1, "3.7", "3.11", "3.1", "3.3", "3.5"), ("eye_r", 2, "3.12", "3.8", "3.2", "3.4", "3.6")):
+        eye = tpl.meta["eyes"][side]
+        c, r = np.array(eye["centre"]), eye["radius"]
+        xs = np.arange(c[0] - 1.6 * r, c[0] + 1.6 * r, step)
+        zs = np.arange(c[2] - 0.8 * r, c[2] + 0.8 * r, step)
+        hit_part, _ = _front_view(tpl, xs, zs)
+        opening = _largest_component(hit_part == part)
+        sign = 1 if side == "eye_l" else -1
+        for name, lateral in ((outer, sign > 0), (inner, sign < 0)):
+            canthus = _end_of(opening, xs, zs, lateral)
+            assert np.linalg.norm(click[name][[0, 2]] - canthus) < 1.5e-3, (name, click[name], canthus)
+            # on the lids in front of the eye, not behind them in the socket
+            assert np.linalg.norm(click[name] - c) < r + 2e-3 and (click[name] - c) @ eye["gaze"] > 0.4 * r, name
+        col = np.argmin(np.abs(xs - click[up][0]))
+        rows = zs[opening[:, col]]
+        assert 0 <= click[up][2] - rows.max() < 1e-3, (up, click[up][2], rows.max())
+        assert 0 <= rows.min() - click[down][2] < 1e-3, (down, click[down][2], rows.min())
+        assert np.linalg.norm(click[pupil] - c) == pytest.approx(r, abs=1e-4)
+
+
+def test_lip_corners_are_clicked_at_the_commissure(tpl, click):
+    """The lip gap is what the front sees of the mouth (its lining, teeth, tongue); its lateral end
+    is where the slit ends, the commissure: 8.3 / 8.4 (outer) and 2.4 / 2.5 (inner lip corner; the
+    lips are closed there, so the two nearly meet) lie within 1.5 mm of it, 8.3 outside 2.4 and
+    far enough from it not to read as one spot clicked twice."""
+    step = 1e-4
+    z_seam = 0.5 * (click["2.2"][2] + click["2.3"][2])
+    xs, zs = np.arange(0.0, 0.04, step), np.arange(z_seam - 0.006, z_seam + 0.006, step)
+    hit_part, hit_face = _front_view(tpl, xs, zs)
+    bag = tpl.region_names.index("mouth_interior")
+    lining = (tpl.region[tpl.skin.tris] == bag).any(axis=1)
+    gap = (hit_part >= 3) | ((hit_part == 0) & lining[np.maximum(hit_face, 0)])
+    commissure = _end_of(_largest_component(gap), xs, zs, lateral=True)
+    for name in ("8.3", "2.4"):
+        assert np.linalg.norm(click[name][[0, 2]] - commissure) < 1.5e-3, (name, click[name], commissure)
+    assert click["8.3"][0] >= click["2.4"][0]
+    assert np.linalg.norm(click["8.3"] - click["2.4"]) > 1e-3
+
+
 def test_outer_and_inner_eye_corners_are_the_ends_of_the_eye_openings(tpl, fdp):
+    """The anatomy's eye corners (regions, lids, sphincters): the ends of the lid margin on the eyeball."""
     v = tpl.skin.verts
     for side, outer, inner, sign in (("eye_l", "3.7", "3.11", 1), ("eye_r", "3.12", "3.8", -1)):
         eye = tpl.meta["eyes"][side]

@@ -81,6 +81,14 @@ class Template:
         """{FDP id: (3,) point} of every FDP on the template, metres."""
         return {k: self.surface_point(r) for k, r in self.meta["fdps"].items()}
 
+    def click_points(self):
+        """{FDP id: (3,) point} where a person clicks each FDP on a picture of the face, metres: the
+        FDP itself, except where the anatomy puts it out of sight or off the corner people see
+        (meta "clicks": the eye corners at the canthi, lid centres on the lids, lip corners at
+        the commissure; assets/template/README.md)."""
+        clicks = self.meta.get("clicks", {})
+        return {k: self.surface_point(clicks.get(k, r)) for k, r in self.meta["fdps"].items()}
+
     def marker_points(self):
         """{marker name: (3,) point} of the held-out markers, metres."""
         return {k: self.surface_point(r) for k, r in self.meta["markers"].items()}
