@@ -188,9 +188,9 @@ def test_adapts_onto_a_bearded_bust_in_its_own_units(demosthenes):
     assert np.median(d) < 0.2 and np.percentile(d, 95) < 4.0, (np.median(d), np.percentile(d, 95))
 
 
-@pytest.mark.xfail(strict=True, reason="3 lid vertices of each bust's carved eyes end inside the transferred "
-                   "orbit's rim (the levels no longer fold the lids into the carving; the bone is not pressed there)")
-@pytest.mark.parametrize("bust", ["nefertiti", "demosthenes"])
+@pytest.mark.parametrize("bust", ["demosthenes", pytest.param("nefertiti", marks=pytest.mark.xfail(
+    strict=True, reason="3 lid vertices of Nefertiti's carved eyes end inside the transferred orbit's rim "
+                        "(the levels no longer fold the lids into the carving; the bone is not pressed there)"))])
 def test_no_visible_skin_inside_a_bust_s_transferred_skull(bust, request):
     tpl, res, ana = request.getfixturevalue(bust)
     visible = ~np.isin(tpl.region, [tpl.region_names.index(r) for r in realct.UNSEEN])

@@ -732,15 +732,18 @@ def lip_seam(tpl):
     return np.flatnonzero(rim & lips)
 
 
-INNER_LIP_PAIRS = (("2.2", "2.3"), ("2.6", "2.8"), ("2.7", "2.9"))
+# FDPs a closed mouth puts within a few millimetres of each other: the upper/lower inner lip points,
+# and the inner/outer lip corners (people may click both at the commissure, one spot)
+CLOSE_LIP_PAIRS = (("2.2", "2.3"), ("2.6", "2.8"), ("2.7", "2.9"), ("2.4", "8.3"), ("2.5", "8.4"))
 
 
 def _closed_mouth(names, P, Q, closed=0.003):
-    """On a closed mouth (inner-lip clicks within 3 mm), give each upper/lower inner-lip FDP pair the
-    template's own small offset about the clicks' midpoint, so click noise cannot cross the lips."""
+    """On a closed mouth (clicks of a CLOSE_LIP_PAIRS pair within 3 mm), give the pair the template's
+    own small offset about the clicks' midpoint, so click noise cannot cross the lips or turn a lip
+    corner inside out."""
     Q = Q.copy()
     pos = {k: i for i, k in enumerate(names)}
-    for a, b in INNER_LIP_PAIRS:
+    for a, b in CLOSE_LIP_PAIRS:
         if a in pos and b in pos:
             i, j = pos[a], pos[b]
             if np.linalg.norm(Q[i] - Q[j]) < closed:
