@@ -229,9 +229,10 @@ def test_a_closed_mouth_s_lip_corners_may_share_one_click(tpl, case):
         calibration.validate_landmarks(clicks)
 
 
-def test_a_level_s_solve_matches_a_direct_solve_warm_or_cold_and_falls_back_to_lu():
-    """adapt._solve_spd (Jacobi-preconditioned CG, LU when CG does not converge) on a level-like
-    system: a smoothness Gram matrix plus a ridge, three right-hand sides, one of them zero."""
+def test_a_level_s_solve_matches_a_direct_solve_warm_or_cold_and_by_its_factorisation(monkeypatch):
+    """adapt._solve_spd on a level-like system (a smoothness Gram matrix plus a ridge, three
+    right-hand sides, one of them zero): diagonal-preconditioned CG, cold or warm; when CG is too
+    slow, a sparse LU, which the next round's (slightly different) system uses as preconditioner."""
     from scipy import sparse
     from scipy.sparse.linalg import spsolve
 
@@ -240,9 +241,18 @@ def test_a_level_s_solve_matches_a_direct_solve_warm_or_cold_and_falls_back_to_l
     lap = sparse.diags([-np.ones(n - 1), 2.0 * np.ones(n), -np.ones(n - 1)], [-1, 0, 1])
     A = (lap.T @ lap + sparse.diags(rng.uniform(0.05, 1.0, n))).tocsr()
     b = np.c_[rng.standard_normal(n), np.zeros(n), rng.standard_normal(n)]
-    exact = np.column_stack([spsolve(A.tocsc(), b[:, c]) for c in range(3)])
-    scale = np.abs(exact).max()
-    for x0 in (None, exact + 0.01 * rng.standard_normal(exact.shape)):
-        assert np.abs(adapt._solve_spd(A, b, x0) - exact).max() < 1e-3 * scale
-    # two CG steps cannot solve it: the LU answers, exactly
-    assert np.abs(adapt._solve_spd(A, b, maxiter=2) - exact).max() < 1e-9 * scale
+
+    def exact(M):
+        return np.column_stack([spsolve(M.tocsc(), b[:, c]) for c in range(3)])
+
+    want = exact(A)
+    scale = np.abs(want).max()
+    for x0 in (None, want + 0.01 * rng.standard_normal(want.shape)):
+        x, factor = adapt._solve_spd(A, b, x0)
+        assert factor is None and np.abs(x - want).max() < 1e-3 * scale
+    monkeypatch.setattr(adapt, "JACOBI_STEPS", 2)         # too few: the system is factorised
+    x, factor = adapt._solve_spd(A, b)
+    assert factor is not None and np.abs(x - want).max() < 1e-9 * scale
+    B = (A + sparse.diags(rng.uniform(0.0, 0.02, n))).tocsr()    # the next round: a little different
+    x, again = adapt._solve_spd(B, b, x, factor)
+    assert again is factor and np.abs(x - exact(B)).max() < 1e-3 * scale

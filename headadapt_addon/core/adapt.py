@@ -21,7 +21,8 @@ from .exceptions import LandmarkError
 
 MM = 1000.0
 TINY = 1e-12
-CG_MAX_STEPS = 1000    # a level's solve falls back to a sparse LU after this many CG steps
+JACOBI_STEPS = 250      # a level's solve factorises (sparse LU) after this many diagonal-preconditioned CG steps
+LU_STEPS = 30           # ... and refactorises when CG preconditioned by that LU takes more
 DENSE_SPACING = 0.002   # a scan whose median edge is shorter is paired by tangent planes, m
 SCANNER_VISIBLE_PARTS = ("skin", "eye_l", "eye_r")
 # the face: what the outcome judges the fit by (hair, a crown or a collar may cover scalp and neck)
@@ -249,6 +250,7 @@ class _Fit:
         self._at_skin = {}
         self._bases = {}
         self.warm = {}              # last coefficients per support: the next ICP round starts there
+        self.factor = {}            # a sparse LU per support, once a level's system needed one
         # umbrella Laplacian of the skin (x_i minus its neighbours' mean) for the smoothness term
         self.laplacian = (sparse.identity(len(self.V), format="csr") - geometry.neighbour_mean(self.tris, len(self.V))).tocsr()
 
@@ -430,7 +432,7 @@ def csrbf_level(fit, pairs, sigma, stiffness):
     lam = stiffness * A.diagonal().sum() / max(R.diagonal().sum(), TINY)
     A = A + lam * R + 1e-6 * lam * sparse.identity(len(centres), format="csc")
     rhs = phi.T @ (pairs.w[:, None] * resid) - lam * (bend.T @ (fit.laplacian @ (fit.current() - fit.V)))
-    coef = _solve_spd(A.tocsr(), np.asarray(rhs), fit.warm.get(sigma))
+    coef, fit.factor[sigma] = _solve_spd(A.tocsr(), np.asarray(rhs), fit.warm.get(sigma), fit.factor.get(sigma))
     fit.warm[sigma] = coef
     zero = np.zeros((len(centres), 3))
     return rbf.CSRBF(centres, sigma, zero, np.zeros((len(centres), 3, 3)), coef, A)
@@ -494,23 +496,34 @@ def _cg_rtol_keyword():
 _CG_RTOL = _cg_rtol_keyword()
 
 
-def _solve_spd(A, b, x0=None, rtol=1e-5, maxiter=CG_MAX_STEPS):
-    """Solve a level's symmetric positive definite A x = b (k right-hand sides) by conjugate
-    gradients preconditioned by A's diagonal, started from x0 (the last ICP round's solution: the
-    rounds of a level change A little). Measured on a 31k-vertex scan: the finest level's 3,300
-    coefficients in about 130 steps (60 ms from cold), where a sparse LU took 150 ms and had to be
-    redone whenever the pairs changed much (fold rounds): about 0.7 s per head. Falls back to a
-    sparse LU where CG has not converged after maxiter steps."""
-    from scipy.sparse.linalg import cg
+def _solve_spd(A, b, x0=None, factor=None, rtol=1e-5):
+    """Solve a level's symmetric positive definite A x = b (k right-hand sides); returns (x, the
+    sparse LU used or None). Conjugate gradients preconditioned by A's diagonal, started from x0
+    (the last ICP round's solution: the rounds of a level change A little), answer well-posed
+    systems fast: the finest level of a 31k-vertex scan-like head in about 130 steps (60 ms), where
+    a sparse LU took 150 ms. Where few pairs reach the level's centres (a face-only scan: Fran, the
+    CT) the smoothness term dominates and CG crawls (800 steps); after JACOBI_STEPS the system is
+    factorised (sparse LU), and the level's later rounds use that factorisation, passed back in as
+    `factor`, to precondition CG, refactorising only if that fails within LU_STEPS."""
+    from scipy.sparse.linalg import LinearOperator, cg
 
-    precondition = sparse.diags(1.0 / A.diagonal())
-    out = np.empty_like(b)
-    for c in range(b.shape[1]):
-        out[:, c], info = cg(A, b[:, c], x0=None if x0 is None else x0[:, c], atol=0.0, maxiter=maxiter,
-                             M=precondition, **{_CG_RTOL: rtol})
-        if info > 0:
-            return splu(A.tocsc(), permc_spec="MMD_AT_PLUS_A").solve(np.ascontiguousarray(b))
-    return out
+    def krylov(precondition, steps):
+        out = np.empty_like(b)
+        for c in range(b.shape[1]):
+            out[:, c], info = cg(A, b[:, c], x0=None if x0 is None else x0[:, c], atol=0.0, maxiter=steps,
+                                 M=precondition, **{_CG_RTOL: rtol})
+            if info > 0:
+                return None
+        return out
+
+    if factor is None:
+        x = krylov(sparse.diags(1.0 / A.diagonal()), JACOBI_STEPS)
+    else:
+        x = krylov(LinearOperator(A.shape, matvec=lambda v: factor.solve(np.ascontiguousarray(v))), LU_STEPS)
+    if x is not None:
+        return x, factor
+    factor = splu(A.tocsc(), permc_spec="MMD_AT_PLUS_A")
+    return factor.solve(np.ascontiguousarray(b)), factor
 
 
 def check_clicks(fit, names, P, Q, weights):
