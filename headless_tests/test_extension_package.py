@@ -219,7 +219,7 @@ def test_linux_zip_ships_the_addon_the_template_and_the_linux_wheel_for_each_pyt
     assert all("manylinux" in w and w.endswith("x86_64.whl") for w in wheels), wheels
     assert manifest["build"]["generated"]["platforms"] == ["linux-x64"]
     assert sorted(manifest["build"]["generated"]["wheels"]) == sorted("./" + w for w in wheels)
-    assert (manifest["blender_version_min"], manifest["blender_version_max"]) == ("4.2.0", "5.3.0")
+    assert (manifest["blender_version_min"], manifest["blender_version_max"]) == ("4.2.13", "5.3.0")
     assert {"__init__.py", "headadapt_addon/__init__.py", "headadapt_addon/ui.py",
             "assets/template/template.npz", "assets/template/template.json",
             "assets/sample_scan/scan.ply", "assets/sample_scan/landmarks.json"} <= set(names)
