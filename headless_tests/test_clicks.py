@@ -30,6 +30,7 @@ def _light(testheads, seed):
     return testheads.make_head(seed, style="scan", subdiv=1, decimate=1.0)
 
 
+@pytest.mark.slow
 def test_no_right_click_is_dropped_on_fifty_heads(tpl, testheads):
     flagged = {}
     for seed in range(200, 250):

@@ -1,8 +1,10 @@
 """The built Linux zip passes Blender's validation, installs and enables as an extension in a clean
-user config, and its bundled scipy is the one Blender's Python imports.
+user config under the running bpy (5.0.1 on Python 3.11 or 5.2.3 on Python 3.13: ./ha test runs both),
+registers every operator, imports scipy from the wheel it bundles for this Python (not the
+environment's), and runs the sample workflow from the installed copy.
 
 The zip is built once per session with tools/build_extension.py (reused while it is newer than every
-file it is built from; the first build downloads the ~37 MB scipy wheel into the wheel cache).
+file it is built from; the first build downloads the two ~37 MB scipy wheels into the wheel cache).
 Installing runs in child processes with their own BLENDER_USER_RESOURCES, so the extension, its
 sidebar panels and its site-packages never reach the bpy module the other tests use.
 """
@@ -32,6 +34,10 @@ RESULT_MARK = "HEADADAPT_RESULT "
 SOURCE_GLOBS = ("blender_manifest.toml", "__init__.py", "headadapt_addon/**/*", "assets/**/*",
                 "tools/build_extension.py")
 
+# The scipy the zip bundles for the Python running these tests (None: this Python has no wheel set).
+THIS_PYTHON = "%d.%d" % sys.version_info[:2]
+WHEEL_SET = next((ws for ws in build_extension.WHEEL_SETS if ws.python == THIS_PYTHON), None)
+
 INSTALL = """
 import json, sys
 import bpy
@@ -43,37 +49,89 @@ panels = sorted(
     if isinstance(getattr(bpy.types, name), type) and issubclass(getattr(bpy.types, name), bpy.types.Panel)
     and getattr(getattr(bpy.types, name), "bl_category", None) == "HeadAdapt"
 )
+operators = {}
+for name in dir(bpy.ops.headadapt):
+    cls = getattr(bpy.types, "HEADADAPT_OT_" + name, None)
+    operators["headadapt." + name] = getattr(cls, "__module__", None)
 repo = next(r for r in bpy.context.preferences.extensions.repos if r.module == "user_default")
+# what Blender's window does by itself (auto-save preferences): the add-on stays enabled on restart
+saved = bpy.ops.wm.save_userpref()
 print(RESULT_MARK + json.dumps({
     "result": sorted(result),
+    "saved": sorted(saved),
     "enabled": EXT_MODULE in bpy.context.preferences.addons,
     "module_file": getattr(module, "__file__", None),
     "repo_dir": repo.directory,
     "extensions_dir": bpy.utils.user_resource("EXTENSIONS"),
     "panels": panels,
+    "operators": operators,
 }))
 """
 
 # A fresh start with the same user config: Blender puts the extensions' site-packages ahead of the
-# interpreter's own, so `import scipy` must resolve to the bundled wheel. Then uninstall.
+# interpreter's own, so `import scipy` must resolve to the bundled wheel. Then the sample workflow
+# through the installed add-on's operators (template, scan, landmarks, calibrate, adapt, bake, save,
+# reload), then uninstall.
 RESTART = """
-import json, os, sys
+import importlib, json, os, sys
 import bpy
 import numpy as np
+# the bpy module starts on factory preferences; Blender's window loads the user's, as here
+steps = {"read_userpref": bpy.ops.wm.read_userpref()}
+enabled_at_start = EXT_MODULE in bpy.context.preferences.addons and EXT_MODULE in sys.modules
 import scipy, scipy.spatial, scipy.sparse.linalg
 extensions_dir = bpy.utils.user_resource("EXTENSIONS")
 site = os.path.join(extensions_dir, ".local", "lib", "python%d.%d" % sys.version_info[:2], "site-packages")
 distance, index = scipy.spatial.cKDTree(np.eye(3)).query([0.9, 0.1, 0.0])
+installed = os.listdir(site) if os.path.isdir(site) else []
+
+ext = importlib.import_module(EXT_MODULE)
+sample = os.path.join(os.path.dirname(ext.__file__), "assets", "sample_scan")
+blend = sys.argv[1]
+bpy.ops.wm.read_homefile(use_empty=False)
+for obj in list(bpy.data.objects):
+    bpy.data.objects.remove(obj)
+win = bpy.context.window_manager.windows[0]
+area = next(a for a in win.screen.areas if a.type == "VIEW_3D")
+with bpy.context.temp_override(window=win, screen=win.screen, area=area):
+    steps["add_template"] = bpy.ops.headadapt.add_template()
+    steps["ply_import"] = bpy.ops.wm.ply_import(filepath=os.path.join(sample, "scan.ply"))
+    scan = bpy.context.selected_objects[0]
+    bpy.context.view_layer.objects.active = scan
+    steps["use_active_as_scan"] = bpy.ops.headadapt.use_active_as_scan()
+    steps["import_landmarks"] = bpy.ops.headadapt.import_landmarks(filepath=os.path.join(sample, "landmarks.json"))
+    steps["calibrate"] = bpy.ops.headadapt.calibrate()
+    steps["adapt"] = bpy.ops.headadapt.adapt()
+    steps["bake_expressions"] = bpy.ops.headadapt.bake_expressions(sets={"expression"})
+    steps["save"] = bpy.ops.wm.save_as_mainfile(filepath=blend)
+scipy_files = sorted({m.__file__ for name, m in list(sys.modules.items())
+                      if (name == "scipy" or name.startswith("scipy.")) and getattr(m, "__file__", None)})
+steps["open"] = bpy.ops.wm.open_mainfile(filepath=blend)
+settings = bpy.context.scene.headadapt
+root = settings.result_root
+skin = next(o for o in root.children_recursive if o.get("headadapt_part") == "skin")
+report = json.loads(settings.report_json)
+
 repo_index = [r.module for r in bpy.context.preferences.extensions.repos].index("user_default")
 uninstall = bpy.ops.extensions.package_uninstall(repo_index=repo_index, pkg_id=PKG_ID)
 repo_dir = bpy.context.preferences.extensions.repos[repo_index].directory
 print(RESULT_MARK + json.dumps({
+    "enabled_at_start": enabled_at_start,
     "site": site,
     "site_on_path": site in sys.path,
     "site_before_interpreter": [p for p in sys.path if p.endswith("site-packages")][:1] == [site],
+    "site_dist_info": sorted(n for n in installed if n.endswith(".dist-info")),
     "scipy_file": scipy.__file__,
     "scipy_version": scipy.__version__,
+    "scipy_files": scipy_files,
+    "numpy_version": np.__version__,
     "nearest": [float(distance), int(index)],
+    "steps": {k: sorted(v) for k, v in steps.items()},
+    "result_root": root.name,
+    "skin_keys": [k.name for k in skin.data.shape_keys.key_blocks],
+    "levels": len(report["levels"]),
+    "best_rms_mm": report["levels"][report["best_level"]]["E_d_rms_mm"],
+    "outcome_ok": report["outcome"]["ok"],
     "uninstall": sorted(uninstall),
     "still_installed": os.path.exists(os.path.join(repo_dir, PKG_ID)),
 }))
@@ -117,6 +175,33 @@ def _run_blender(code, args, user_dir, cwd):
     return json.loads(lines[-1][len(RESULT_MARK):]), proc.stdout + proc.stderr
 
 
+def _version(text):
+    return tuple(int(part) for part in text.split("."))
+
+
+def _platform_of(wheel):
+    """The Blender platform a wheel's platform tag is for."""
+    tag = wheel.removesuffix(".whl").split("-")[-1]
+    arch = "arm64" if tag.endswith("arm64") else "x64" if tag.endswith(("x86_64", "amd64")) else tag
+    system = "windows" if tag.startswith("win") else "macos" if tag.startswith("macosx") else \
+        "linux" if "manylinux" in tag else tag
+    return f"{system}-{arch}"
+
+
+def test_this_blender_and_its_python_are_inside_what_the_extension_supports():
+    import bpy
+
+    assert _version(MANIFEST["blender_version_min"]) <= bpy.app.version < _version(MANIFEST["blender_version_max"])
+    assert WHEEL_SET is not None, f"no scipy wheel is bundled for Python {THIS_PYTHON} (tools/build_extension.py)"
+    # the tracked manifest (rewritten by a full build) lists each Python's wheel once for every platform
+    assert sorted(MANIFEST["platforms"]) == list(build_extension.ALL_PLATFORMS)
+    assert len(MANIFEST["wheels"]) == len(build_extension.WHEEL_SETS) * len(build_extension.ALL_PLATFORMS)
+    for ws in build_extension.WHEEL_SETS:
+        prefix = f"./wheels/scipy-{ws.version}-{ws.abi}-{ws.abi}-"
+        platforms = sorted(_platform_of(w) for w in MANIFEST["wheels"] if w.startswith(prefix))
+        assert platforms == list(build_extension.ALL_PLATFORMS), (ws.python, MANIFEST["wheels"])
+
+
 def test_linux_zip_passes_blender_validation(linux_zip):
     tool, tags = build_extension.find_blender_ext()
     proc = subprocess.run([sys.executable, str(tool), "validate", f"--valid-tags={tags}", str(linux_zip)],
@@ -124,36 +209,66 @@ def test_linux_zip_passes_blender_validation(linux_zip):
     assert proc.returncode == 0, proc.stdout + proc.stderr
 
 
-def test_linux_zip_ships_the_addon_the_template_and_only_the_linux_wheel(linux_zip):
+def test_linux_zip_ships_the_addon_the_template_and_the_linux_wheel_for_each_python(linux_zip):
     with zipfile.ZipFile(linux_zip) as archive:
         names = archive.namelist()
         manifest = tomllib.loads(archive.read("blender_manifest.toml").decode("utf-8"))
-    wheels = [name for name in names if name.endswith(".whl")]
-    assert len(wheels) == 1 and wheels[0].startswith("wheels/scipy-1.13.1-cp311-cp311-manylinux"), wheels
+    wheels = sorted(name for name in names if name.endswith(".whl"))
+    expected = [f"wheels/scipy-{ws.version}-{ws.abi}-{ws.abi}-" for ws in build_extension.WHEEL_SETS]
+    assert len(wheels) == len(expected) and all(w.startswith(e) for w, e in zip(wheels, expected)), wheels
+    assert all("manylinux" in w and w.endswith("x86_64.whl") for w in wheels), wheels
     assert manifest["build"]["generated"]["platforms"] == ["linux-x64"]
-    assert manifest["blender_version_min"] == "4.2.0"
+    assert sorted(manifest["build"]["generated"]["wheels"]) == sorted("./" + w for w in wheels)
+    assert (manifest["blender_version_min"], manifest["blender_version_max"]) == ("4.2.13", "5.3.0")
     assert {"__init__.py", "headadapt_addon/__init__.py", "headadapt_addon/ui.py",
-            "assets/template/template.npz", "assets/template/template.json"} <= set(names)
+            "assets/template/template.npz", "assets/template/template.json",
+            "assets/sample_scan/scan.ply", "assets/sample_scan/landmarks.json"} <= set(names)
     dev_only = [name for name in names if name.split("/")[0] in {"headless_tests", "tools", "docs", ".venv", ".ci"}
-                or name in {"assets/build_template.py", "ha", "requirements.txt", "pytest.ini"}
+                or name.startswith(".venv")
+                or name in {"assets/build_template.py", "ha", "requirements.txt", "requirements-blender52.txt",
+                            "pytest.ini"}
                 or "__pycache__" in name or name.endswith(".pyc")]
     assert dev_only == []
 
 
-def test_linux_zip_installs_and_enables_in_clean_user_config(linux_zip, tmp_path):
+def _expected_operators():
+    import bpy
+
+    from headadapt_addon import ops, picker
+
+    return sorted(cls.bl_idname for mod in (ops, picker) for cls in mod.classes if issubclass(cls, bpy.types.Operator))
+
+
+def test_linux_zip_installs_registers_and_runs_the_workflow_in_a_clean_user_config(linux_zip, tmp_path):
     user_dir = tmp_path / "blender-user"
     installed, log = _run_blender(INSTALL, [linux_zip], user_dir, tmp_path)
-    assert installed["result"] == ["FINISHED"], log
+    assert installed["result"] == ["FINISHED"] and installed["saved"] == ["FINISHED"], log
     assert installed["enabled"], log
     assert pathlib.Path(installed["module_file"]).parent == pathlib.Path(installed["repo_dir"]) / MANIFEST["id"]
     assert str(user_dir) in installed["repo_dir"]
     assert "HEADADAPT_PT_template" in installed["panels"], installed["panels"]
+    expected = _expected_operators()
+    assert len(expected) == 12 and sorted(installed["operators"]) == expected, installed["operators"]
+    # each one is the installed copy's class, not the source tree's
+    assert all(module.startswith(EXT_MODULE + ".") for module in installed["operators"].values()), installed["operators"]
 
-    # Blender restarted on that config: the bundled scipy (not the interpreter's) is imported; uninstall.
-    restarted, log = _run_blender(RESTART, [], user_dir, tmp_path)
+    # Blender restarted on that config: the wheel for this Python (and no other) was installed and is
+    # imported ahead of the environment's scipy; the sample workflow runs; uninstall.
+    restarted, log = _run_blender(RESTART, [tmp_path / "workflow.blend"], user_dir, tmp_path)
+    assert restarted["enabled_at_start"], log
     site = pathlib.Path(restarted["site"])
+    assert site.parent.name == f"python{THIS_PYTHON}"
     assert restarted["site_on_path"] and restarted["site_before_interpreter"], log
+    assert restarted["site_dist_info"] == [f"scipy-{WHEEL_SET.version}.dist-info"], restarted["site_dist_info"]
     assert pathlib.Path(restarted["scipy_file"]).is_relative_to(site), restarted["scipy_file"]
-    assert restarted["scipy_version"] == "1.13.1"
+    assert restarted["scipy_version"] == WHEEL_SET.version
+    assert restarted["scipy_files"] and all(pathlib.Path(f).is_relative_to(site) for f in restarted["scipy_files"])
     assert restarted["nearest"] == [pytest.approx(0.1 * 2 ** 0.5), 0]
+
+    assert restarted["steps"] == {step: ["FINISHED"] for step in (
+        "read_userpref", "add_template", "ply_import", "use_active_as_scan", "import_landmarks", "calibrate", "adapt",
+        "bake_expressions", "save", "open")}, log
+    assert restarted["result_root"] == "HA Adapted head"
+    assert {"Basis", "joy", "surprise"} <= set(restarted["skin_keys"]) and "viseme_A" not in restarted["skin_keys"]
+    assert restarted["levels"] > 1 and restarted["best_rms_mm"] < 1.0 and restarted["outcome_ok"], restarted
     assert restarted["uninstall"] == ["FINISHED"] and not restarted["still_installed"], log

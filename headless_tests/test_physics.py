@@ -63,6 +63,7 @@ def test_every_template_key_stays_out_of_the_skull_and_folds_nothing(tpl, model)
     print(f"\nbake: {len(keys)} keys, {timing['per_key_s'] * 1000:.1f} ms per key")
 
 
+@pytest.mark.slow
 def test_every_adapted_head_key_stays_out_of_the_skull_and_folds_nothing(tpl, adapted):
     ana, keys, model = adapted
     _check_keys(tpl, ana.parts, keys, model)

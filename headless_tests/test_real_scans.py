@@ -36,7 +36,9 @@ def test_adapts_onto_the_real_ct_skin(ct):
     assert np.isfinite(d).sum() > 2500
     visible = ~np.isin(tpl.region, [tpl.region_names.index(r) for r in realct.UNSEEN])
     away = d[np.isfinite(d) & visible & ~lids]   # the lids are closed on the CT, open on the template
-    assert np.median(away) < 0.2 and np.percentile(away, 95) < 2.0, (np.median(away), np.percentile(away, 95))
+    # p95 is 1.90 mm under numpy 1.26 and 2.01 under numpy 2.5; rounding alone moves it that much: the
+    # CT's coordinates scaled by 1 +- 1e-13 give 1.90 to 1.95 (numpy 1.26) and 1.87 to 2.01 (numpy 2.5)
+    assert np.median(away) < 0.2 and np.percentile(away, 95) < 2.1, (np.median(away), np.percentile(away, 95))
 
 
 def test_no_folds_where_the_scan_has_closed_eyes(ct, fran):
@@ -64,6 +66,7 @@ def test_tissue_depths_on_the_ct_are_those_of_the_transferred_skull(ct):
     assert np.median(err) < 4.0, [(n, round(real, 1), round(ours, 1)) for n, _, real, ours in rows]
 
 
+@pytest.mark.slow
 def test_expressions_bake_cleanly_on_the_real_ct(ct):
     # every key on the CT's head: no key puts visible skin inside the (moved) skull, no folded
     # triangle, neutral reproduced (3 keys put a lid vertex in the bone before the skull's folds were

@@ -3,16 +3,19 @@
     python tools/build_extension.py [--out dist] [--platforms linux-x64,windows-x64,macos-arm64,macos-x64]
                                     [--wheel-cache DIR]
 
-1. Fetches the scipy wheel for each platform with ``pip download`` (the Python running this script),
-   into a cache (default ``$HEADADAPT_CACHE/wheels``, ``~/.cache/headadapt/wheels``), reused when present.
+1. Fetches the scipy wheels for each platform with ``pip download`` (the Python running this script):
+   one per Python that Blender ships (``WHEEL_SETS``), into a cache (default ``$HEADADAPT_CACHE/wheels``,
+   ``~/.cache/headadapt/wheels``), reused when present.
 2. Copies them into ``./wheels/`` (gitignored).
 3. With every platform requested (the default), rewrites ``platforms`` and ``wheels`` in
    ``blender_manifest.toml`` (sorted) and builds from the repository root; for a subset it leaves the
    tracked manifest alone and builds from a staging copy whose manifest lists only that subset.
 4. Runs ``blender_ext.py build --split-platforms`` then ``blender_ext.py validate`` on every zip.
 
-Blender 4.2 to 5.0 run Python 3.11, hence cp311 wheels; numpy is never bundled (Blender's own is used).
-Runs under plain Python: ``blender_ext.py`` is found in the ``bpy`` module's package (not imported).
+Each zip holds its platform's wheel for every Python: Blender 4.2 to 5.0 run Python 3.11 (scipy 1.13.1,
+cp311), 5.1 and 5.2 run Python 3.13 (scipy 1.16.3, cp313, built for numpy 2). Blender installs only the
+wheel whose platform and Python tags match the running Blender. numpy is never bundled (Blender's own is
+used). Runs under plain Python: ``blender_ext.py`` is found in the ``bpy`` module's package (not imported).
 """
 
 import argparse
@@ -30,20 +33,48 @@ ROOT = pathlib.Path(__file__).resolve().parents[1]
 MANIFEST = ROOT / "blender_manifest.toml"
 WHEELS_DIR = ROOT / "wheels"
 
-SCIPY = "scipy==1.13.1"
-PYTHON_VERSION = "3.11"
-# Blender platform -> the pip ``--platform`` tag that scipy 1.13.1 publishes a cp311 wheel for.
-PIP_PLATFORM = {
-    "linux-x64": "manylinux_2_17_x86_64",
-    "macos-arm64": "macosx_12_0_arm64",
-    "macos-x64": "macosx_10_9_x86_64",
-    "windows-x64": "win_amd64",
-}
+
+class WheelSet:
+    """One scipy release for one Python, with the pip ``--platform`` tag each Blender platform's
+    wheel is published under (the oldest OS that release supports)."""
+
+    def __init__(self, version, python, blenders, pip_platform):
+        self.name, self.version, self.python, self.blenders = "scipy", version, python, blenders
+        self.pip_platform = dict(pip_platform)
+        self.abi = "cp" + python.replace(".", "")
+
+    @property
+    def requirement(self):
+        return f"{self.name}=={self.version}"
+
+    def pattern(self):
+        return f"{self.name}-{self.version}-{self.abi}-{self.abi}-*.whl"
+
+
+WHEEL_SETS = (
+    # Blender 4.2 LTS to 5.0: Python 3.11, numpy 1.26 (the scipy HeadAdapt has shipped since 0.1.0).
+    WheelSet("1.13.1", "3.11", "Blender 4.2 to 5.0", {
+        "linux-x64": "manylinux_2_17_x86_64",
+        "macos-arm64": "macosx_12_0_arm64",
+        "macos-x64": "macosx_10_9_x86_64",
+        "windows-x64": "win_amd64",
+    }),
+    # Blender 5.1 and 5.2 LTS: Python 3.13, numpy 2.x (scipy 1.16.3 accepts numpy 1.25.2 to 2.5;
+    # 1.17 dropped the manylinux2014 wheel).
+    WheelSet("1.16.3", "3.13", "Blender 5.1 to 5.2", {
+        "linux-x64": "manylinux_2_17_x86_64",
+        "macos-arm64": "macosx_12_0_arm64",
+        "macos-x64": "macosx_10_14_x86_64",
+        "windows-x64": "win_amd64",
+    }),
+)
+PIP_PLATFORM = WHEEL_SETS[0].pip_platform
+assert all(set(ws.pip_platform) == set(PIP_PLATFORM) for ws in WHEEL_SETS)
 ALL_PLATFORMS = tuple(sorted(PIP_PLATFORM))
 
 # Never copied into a staging tree (the manifest's own exclusions apply on top when building).
 STAGING_IGNORE = shutil.ignore_patterns(
-    ".git", ".venv", ".pytest_cache", "__pycache__", "*.pyc", "dist", "out", "build", "wheels",
+    ".git", ".venv*", ".pytest_cache", "__pycache__", "*.pyc", "dist", "out", "build", "wheels",
     "*.zip",
 )
 
@@ -82,31 +113,37 @@ def find_blender_ext():
     return tool, tags
 
 
-def fetch_wheel(platform, cache):
-    """The cached scipy wheel for one Blender platform, downloading it with pip when absent."""
-    pip_tag = PIP_PLATFORM[platform]
-    name, version = SCIPY.split("==")
+def fetch_wheel(platform, cache, wheel_set):
+    """The cached scipy wheel of ``wheel_set`` for one Blender platform, downloading it with pip when absent."""
+    pip_tag = wheel_set.pip_platform[platform]
     cache_dir = cache / pip_tag
-    pattern = f"{name}-{version}-cp311-cp311-*.whl"
+    pattern = wheel_set.pattern()
     cached = sorted(cache_dir.glob(pattern))
     if len(cached) == 1:
         return cached[0]
     if len(cached) > 1:
         raise BuildError(f"{cache_dir} holds several wheels matching {pattern}; remove the stale ones")
     cache_dir.mkdir(parents=True, exist_ok=True)
-    print(f"fetching {SCIPY} for {platform} ({pip_tag}) into {cache_dir}", flush=True)
+    print(f"fetching {wheel_set.requirement} for {platform} ({pip_tag}, Python {wheel_set.python}: "
+          f"{wheel_set.blenders}) into {cache_dir}", flush=True)
     command = [
         sys.executable, "-m", "pip", "download", "--quiet", "--only-binary=:all:", "--no-deps",
-        "--python-version", PYTHON_VERSION, "--platform", pip_tag, "--dest", str(cache_dir), SCIPY,
+        "--python-version", wheel_set.python, "--implementation", "cp", "--abi", wheel_set.abi,
+        "--platform", pip_tag, "--dest", str(cache_dir), wheel_set.requirement,
     ]
     result = subprocess.run(command, capture_output=True, text=True)
     cached = sorted(cache_dir.glob(pattern))
     if result.returncode != 0 or len(cached) != 1:
         raise BuildError(
-            f"pip could not fetch {SCIPY} for {platform} (--platform {pip_tag}, Python {PYTHON_VERSION}):\n"
-            f"{result.stdout}{result.stderr}".rstrip()
+            f"pip could not fetch {wheel_set.requirement} for {platform} (--platform {pip_tag}, "
+            f"Python {wheel_set.python}):\n{result.stdout}{result.stderr}".rstrip()
         )
     return cached[0]
+
+
+def fetch_wheels(platforms, cache):
+    """Every platform's wheels, one per Python in ``WHEEL_SETS``: ``{platform: [wheel, ...]}``."""
+    return {platform: [fetch_wheel(platform, cache, ws) for ws in WHEEL_SETS] for platform in platforms}
 
 
 def sync_wheels(wheels, keep_names):
@@ -166,13 +203,13 @@ def build(out, platforms, cache):
     manifest = tomllib.loads(manifest_text)
     ext_id, version = manifest["id"], manifest["version"]
 
-    wheels = {platform: fetch_wheel(platform, cache) for platform in platforms}
+    wheels = [wheel for per_platform in fetch_wheels(platforms, cache).values() for wheel in per_platform]
     full = set(platforms) == set(ALL_PLATFORMS)
 
     # ./wheels/ keeps what the tracked manifest lists plus what this build ships.
     listed = {pathlib.PurePosixPath(path).name for path in manifest.get("wheels", [])}
-    names = {wheel.name for wheel in wheels.values()}
-    sync_wheels(wheels.values(), names if full else names | listed)
+    names = {wheel.name for wheel in wheels}
+    sync_wheels(wheels, names if full else names | listed)
 
     out.mkdir(parents=True, exist_ok=True)
     zips = [out / f"{ext_id}-{version}-{platform.replace('-', '_')}.zip" for platform in sorted(platforms)]
@@ -191,7 +228,7 @@ def build(out, platforms, cache):
             source = pathlib.Path(staging) / "headadapt"
             shutil.copytree(ROOT, source, ignore=STAGING_IGNORE)
             (source / "wheels").mkdir()
-            for wheel in wheels.values():
+            for wheel in wheels:
                 shutil.copy2(WHEELS_DIR / wheel.name, source / "wheels" / wheel.name)
             (source / MANIFEST.name).write_text(manifest_with(manifest_text, platforms, names), encoding="utf-8")
             run_tool(tool, [*build_args, "--source-dir", str(source)], "build")
