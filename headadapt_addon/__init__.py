@@ -9,8 +9,8 @@ __version__ = "0.1.0"
 
 
 def _modules():
-    from . import ops, picker, props, ui
-    return (props, ops, picker, ui)
+    from .ui import operators, panels, picker, props
+    return (props, operators, picker, panels)
 
 
 def register():

@@ -70,8 +70,9 @@ def run_adapt(scan_path, landmarks_path, out_dir, levels=4, calibration="auto", 
     """Adapt the template onto one scan file; write adapted_head.obj + report.json (atomic); return the
     report. Progress goes to log, one line per warning to warn; report["outcome"]["ok"] says whether
     the fit can be trusted (main: exit code 3 if not)."""
-    from .core import meshio, outcome_text
-    from .core.adapt import AdaptOptions, adapt
+    from .core import meshio
+    from .core.adapt import outcome_text
+    from .core.adapt.pipeline import AdaptOptions, adapt
     from .core.template import load_template
 
     t0 = time.perf_counter()
@@ -110,7 +111,7 @@ def run_adapt(scan_path, landmarks_path, out_dir, levels=4, calibration="auto", 
     log(f"headadapt: wrote {out_dir / 'adapted_head.obj'} and {out_dir / 'report.json'} in "
         f"{report['total_seconds']:.2f} s")
     if blend:
-        from . import blendout
+        from .blender import blendout
         blendout.write_blend(blend, tpl, result, verts, tris, points, report)
         log(f"headadapt: wrote {blend}")
     return report
@@ -151,7 +152,8 @@ def run_folder(folder, out, jobs=0, levels=4, calibration="auto", keep_flagged=F
     import concurrent.futures
     import os
 
-    from .core import meshio, outcome_text
+    from .core import meshio
+    from .core.adapt import outcome_text
     pairs = find_pairs(folder)
     if not pairs:
         from .core.exceptions import FileFormatError

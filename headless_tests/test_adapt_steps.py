@@ -1,10 +1,11 @@
-"""The adaptation's steps one by one (core/adapt.py), on a scan made from the template itself under a
+"""The adaptation's steps one by one (core/adapt/), on a scan made from the template itself under a
 known smooth deformation: the template's visible skin, stretched, sheared and bumped. Every step must
 move the template toward that known answer, and the clicks' checks must tell right from wrong."""
 import numpy as np
 import pytest
 
-from headadapt_addon.core import adapt, calibration, mpeg4
+from headadapt_addon.core.adapt import pipeline as adapt, calibration
+from headadapt_addon.core import mpeg4
 from headadapt_addon.core.template import load_template
 
 MM = 1000.0
@@ -208,7 +209,7 @@ def test_clicks_are_evidence_not_law(tpl, case):
 
     exact = adapt.adapt(tpl, scan_v, scan_t, clicks)
     rng = np.random.default_rng(0)
-    from headadapt_addon.core import spatial
+    from headadapt_addon.core.mesh import spatial
     q = spatial.MeshQuery(scan_v, scan_t)
     costs = []
     for _ in range(3):

@@ -8,7 +8,7 @@ def test_register_adds_sidebar_panels_in_work_order(clean_scene):
 
     headadapt_addon.register()
     try:
-        from headadapt_addon import ui
+        from headadapt_addon.ui import panels as ui
 
         labels = [cls.bl_label for cls in ui.classes]
         assert labels == ["Template", "Scan", "Landmarks", "Calibrate", "Adapt", "Anatomy",

@@ -23,7 +23,7 @@ def tpl():
 def _scan_object(tpl, scale=1000.0, name="scan"):
     """The template skin as a stand-in scan, in mm, moved away from the origin."""
     import bpy
-    from headadapt_addon import bridge
+    from headadapt_addon.blender import bridge
 
     obj = bpy.data.objects.new(name, bridge.new_mesh(name, tpl.skin.verts * scale, tpl.skin.tris))
     bpy.context.scene.collection.objects.link(obj)
@@ -33,7 +33,7 @@ def _scan_object(tpl, scale=1000.0, name="scan"):
 
 
 def test_clicks_place_fdps_on_the_surface_and_move_to_the_next(addon, tpl):
-    from headadapt_addon import landmarks
+    from headadapt_addon.blender import landmarks
 
     scan = _scan_object(tpl)
     m = np.array(scan.matrix_world)
@@ -57,7 +57,7 @@ def test_clicks_place_fdps_on_the_surface_and_move_to_the_next(addon, tpl):
 
 
 def test_mirror_suggestion_lands_on_the_partner(addon, tpl):
-    from headadapt_addon import landmarks
+    from headadapt_addon.blender import landmarks
 
     true = {k: p * 1000 for k, p in tpl.fdp_points().items()}
     pts = {k: true[k] for k in ("3.7", "3.12", "8.3", "8.4", "2.1", "9.3", "11.1", "4.5")}
@@ -67,7 +67,7 @@ def test_mirror_suggestion_lands_on_the_partner(addon, tpl):
 
 def test_landmarks_survive_save_and_reload(addon, tpl, tmp_path):
     import bpy
-    from headadapt_addon import landmarks
+    from headadapt_addon.blender import landmarks
 
     scan = _scan_object(tpl)
     pts = {k: p * 1000 for k, p in tpl.fdp_points().items()}
@@ -100,7 +100,8 @@ class _Recorder:
 
 def test_every_panel_draws_on_empty_and_full_scenes(addon, tpl):
     import bpy
-    from headadapt_addon import landmarks, ui
+    from headadapt_addon.blender import landmarks
+    from headadapt_addon.ui import panels as ui
 
     def draw_all():
         texts = []
@@ -126,7 +127,7 @@ def _report_labels(rep):
     import json
 
     import bpy
-    from headadapt_addon import ui
+    from headadapt_addon.ui import panels as ui
 
     bpy.context.scene.headadapt.report_json = json.dumps(rep)
     rec = _Recorder()

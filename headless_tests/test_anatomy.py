@@ -2,8 +2,10 @@
 import numpy as np
 import pytest
 
-from headadapt_addon.core import adapt, anatomy, geometry, spatial
-from headadapt_addon.core.inside import winding_numbers
+from headadapt_addon.core.adapt import pipeline as adapt
+from headadapt_addon.core import anatomy
+from headadapt_addon.core.mesh import geometry, spatial
+from headadapt_addon.core.mesh.inside import winding_numbers
 from headadapt_addon.core.template import load_template
 
 

@@ -4,7 +4,8 @@ import pytest
 from scipy.spatial import ConvexHull
 from scipy.spatial.transform import Rotation
 
-from headadapt_addon.core import calibration, geometry, metrics, rbf, spatial
+from headadapt_addon.core.adapt import calibration, metrics, rbf
+from headadapt_addon.core.mesh import geometry, spatial
 from headadapt_addon.core.exceptions import LandmarkError, MeshError
 from headadapt_addon.core.template import load_template
 

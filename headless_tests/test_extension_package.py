@@ -220,7 +220,7 @@ def test_linux_zip_ships_the_addon_the_template_and_the_linux_wheel_for_each_pyt
     assert manifest["build"]["generated"]["platforms"] == ["linux-x64"]
     assert sorted(manifest["build"]["generated"]["wheels"]) == sorted("./" + w for w in wheels)
     assert (manifest["blender_version_min"], manifest["blender_version_max"]) == ("4.2.13", "5.3.0")
-    assert {"__init__.py", "headadapt_addon/__init__.py", "headadapt_addon/ui.py",
+    assert {"__init__.py", "headadapt_addon/__init__.py", "headadapt_addon/ui/panels.py",
             "assets/template/template.npz", "assets/template/template.json",
             "assets/sample_scan/scan.ply", "assets/sample_scan/landmarks.json"} <= set(names)
     dev_only = [name for name in names if name.split("/")[0] in {"headless_tests", "tools", "docs", ".venv", ".ci"}
@@ -234,9 +234,9 @@ def test_linux_zip_ships_the_addon_the_template_and_the_linux_wheel_for_each_pyt
 def _expected_operators():
     import bpy
 
-    from headadapt_addon import ops, picker
+    from headadapt_addon.ui import operators, picker
 
-    return sorted(cls.bl_idname for mod in (ops, picker) for cls in mod.classes if issubclass(cls, bpy.types.Operator))
+    return sorted(cls.bl_idname for mod in (operators, picker) for cls in mod.classes if issubclass(cls, bpy.types.Operator))
 
 
 def test_linux_zip_installs_registers_and_runs_the_workflow_in_a_clean_user_config(linux_zip, tmp_path):

@@ -1,12 +1,13 @@
-"""The skin model and the bake (core/physics.py, core/bake.py) on the template and an adapted head:
+"""The skin model and the bake (core/skin/) on the template and an adapted head:
 every baked key keeps the skin out of the skull and folds no triangle, zero activation is the
 neutral face, mirrored activations mirror, muscles act locally, and the simulated expressions match
 the artist-made ARKit face units (cosine >= 0.7 with fitted activations)."""
 import numpy as np
 import pytest
 
-from headadapt_addon.core import anatomy, bake, drive, physics
-from headadapt_addon.core.inside import winding_numbers
+from headadapt_addon.core import anatomy
+from headadapt_addon.core.skin import bake, drive, model as physics
+from headadapt_addon.core.mesh.inside import winding_numbers
 from headadapt_addon.core.template import load_template
 
 
@@ -25,7 +26,7 @@ def adapted(tpl, request):
     """(Anatomy, baked keys, model) of the template adapted onto a generated head (three seeds:
     thin and full lips, narrow and wide jaws bring the lips onto different bone rims)."""
     testheads = pytest.importorskip("tools.testheads")
-    from headadapt_addon.core import adapt
+    from headadapt_addon.core.adapt import pipeline as adapt
     try:
         head = testheads.make_head(request.param)
     except FileNotFoundError as exc:

@@ -9,8 +9,10 @@ import warnings
 import numpy as np
 import pytest
 
-from headadapt_addon.core import adapt, anatomy, geometry, meshio
-from headadapt_addon.core.inside import winding_numbers
+from headadapt_addon.core.adapt import pipeline as adapt
+from headadapt_addon.core import anatomy, meshio
+from headadapt_addon.core.mesh import geometry
+from headadapt_addon.core.mesh.inside import winding_numbers
 from headadapt_addon.core.template import load_template
 from tools import realct
 
@@ -71,7 +73,7 @@ def test_expressions_bake_cleanly_on_the_real_ct(ct):
     # every key on the CT's head: no key puts visible skin inside the (moved) skull, no folded
     # triangle, neutral reproduced (3 keys put a lid vertex in the bone before the skull's folds were
     # relaxed; a vertex already inside at rest is test_no_visible_skin_inside_the_transferred_skull's)
-    from headadapt_addon.core import bake
+    from headadapt_addon.core.skin import bake
 
     tpl, ana = ct.tpl, ct.anatomy
     keys, timing = bake.bake(tpl, ana)

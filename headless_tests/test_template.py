@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from headadapt_addon.core import mpeg4
-from headadapt_addon.core.inside import winding_numbers
+from headadapt_addon.core.mesh.inside import winding_numbers
 from headadapt_addon.core.template import TEMPLATE_DIR, load_template
 
 @pytest.fixture(scope="module")
@@ -312,7 +312,7 @@ def test_each_bone_is_one_piece_without_pin_holes(tpl):
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
 
-    from headadapt_addon.core.geometry import boundary_edges
+    from headadapt_addon.core.mesh.geometry import boundary_edges
     for bone in ("cranium", "mandible"):
         part = tpl.parts[bone]
         n, t = len(part.verts), part.tris

@@ -5,7 +5,9 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from headadapt_addon.core import calibration, mpeg4, spatial
+from headadapt_addon.core.adapt import calibration
+from headadapt_addon.core import mpeg4
+from headadapt_addon.core.mesh import spatial
 
 MM = 1e-3
 

@@ -16,8 +16,9 @@ ROOT = pathlib.Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from headadapt_addon.core import adapt, anatomy, meshio  # noqa: E402
-from headadapt_addon.core.spatial import MeshQuery  # noqa: E402
+from headadapt_addon.core.adapt import pipeline as adapt
+from headadapt_addon.core import anatomy, meshio  # noqa: E402
+from headadapt_addon.core.mesh.spatial import MeshQuery  # noqa: E402
 
 CLICKS = ROOT / "headless_tests" / "data" / "headsq_ct_fdps.json"
 UNSEEN = ("mouth_interior", "eye_socket_l", "eye_socket_r")
@@ -87,7 +88,7 @@ def tissue_depths(case):
     the CT covers: along the adapted skin's inward normal, from the CT's skin point nearest the
     landmark to the CT's bone, and from the adapted skin to the transferred skull (NaN: no hit
     within 40 mm, e.g. through the thin nasal bones the CT misses)."""
-    from headadapt_addon.core.geometry import vertex_normals
+    from headadapt_addon.core.mesh.geometry import vertex_normals
 
     tpl, res = case.tpl, case.result
     normals = vertex_normals(res.verts, tpl.skin.tris)

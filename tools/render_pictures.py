@@ -21,7 +21,7 @@ sys.path.insert(0, str(ROOT))
 
 import bpy  # noqa: E402
 
-from headadapt_addon import scene  # noqa: E402
+from headadapt_addon.blender import scene  # noqa: E402
 from headadapt_addon.core.template import load_template  # noqa: E402
 
 VIEW_SIZE = (720, 820)
@@ -116,9 +116,9 @@ def _side_by_side(paths, out):
 
 def render_demo(out, tmp):
     """Sample scan (grey) beside the adapted head coloured by its distance to the scan."""
-    from headadapt_addon import blendout, bridge
+    from headadapt_addon.blender import blendout, bridge
     from headadapt_addon.core import meshio
-    from headadapt_addon.core.adapt import adapt
+    from headadapt_addon.core.adapt.pipeline import adapt
 
     tpl = load_template()
     sample = ROOT / "assets" / "sample_scan"
@@ -149,7 +149,7 @@ def render_ct(out, tmp):
     CT's own skin and bone, front and side, same frame and camera. Needs ../shared/scans."""
     import os
 
-    from headadapt_addon import bridge
+    from headadapt_addon.blender import bridge
     from tools import realct
 
     scans = pathlib.Path(os.environ.get("HEADADAPT_SCANS", ROOT.parent / "shared" / "scans"))

@@ -59,7 +59,8 @@ for p in (ROOT, ROOT / "assets"):
     if str(p) not in sys.path:
         sys.path.insert(0, str(p))
 
-from headadapt_addon.core import geometry, meshio, mpeg4, spatial  # noqa: E402
+from headadapt_addon.core.mesh import geometry, spatial
+from headadapt_addon.core import meshio, mpeg4  # noqa: E402
 from headadapt_addon.core.template import load_template  # noqa: E402
 
 TARGET_CATEGORIES = ("head", "nose", "mouth", "chin", "cheek", "ears", "eyes", "forehead", "eyebrows", "neck")
@@ -210,7 +211,7 @@ def _remesh(verts, quads, subdiv, ratio, seed):
     """Catmull-Clark (subdiv levels), triangulate, collapse-decimate to ratio (bpy); (verts, tris)."""
     import bpy
 
-    from headadapt_addon import bridge
+    from headadapt_addon.blender import bridge
 
     mesh = bridge.new_mesh("testhead", verts, quads)
     obj = bpy.data.objects.new("testhead", mesh)

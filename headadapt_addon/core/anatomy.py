@@ -9,9 +9,10 @@ import dataclasses
 
 import numpy as np
 
-from . import geometry, mpeg4
-from .calibration import Similarity
-from .inside import winding_numbers
+from .mesh import geometry
+from . import mpeg4
+from .adapt.calibration import Similarity
+from .mesh.inside import winding_numbers
 
 # rigid parts and the FDPs that carry them (eq 25-28): x axis (a - b), y axis (c - d), reference set
 RIGID_FDPS = {
@@ -92,8 +93,8 @@ def keep_inside(tpl, bone_template, bone_mapped, skin_adapted, clearance=0.0015)
     pocket of the skin (eye socket, mouth bag) that ends in it goes out through the pocket's lining
     (the mandible's centre, the old way out, lies in the mouth). Template frame, m.
     """
-    from .geometry import face_normals
-    from .spatial import MeshQuery, barycentric
+    from .mesh.geometry import face_normals
+    from .mesh.spatial import MeshQuery, barycentric
 
     hidden = _hidden(tpl)
     faces = tpl.skin.tris[~hidden[tpl.skin.tris].any(axis=1)]
@@ -151,8 +152,8 @@ def clear_visible_skin(tpl, skin, cranium, mandible, limit=0.48, radius=0.008, s
     """
     from scipy.spatial import cKDTree
 
-    from .geometry import face_normals, vertex_normals
-    from .spatial import MeshQuery
+    from .mesh.geometry import face_normals, vertex_normals
+    from .mesh.spatial import MeshQuery
 
     n_cr = len(cranium)
     bone = np.vstack([cranium, mandible]).astype(np.float64)

@@ -20,7 +20,7 @@ from scipy.sparse.linalg import spsolve
 ROOT = pathlib.Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
 
-from headadapt_addon.core import bake, drive, physics  # noqa: E402
+from headadapt_addon.core.skin import bake, drive, model as physics  # noqa: E402
 from headadapt_addon.core.template import load_template  # noqa: E402
 from tools import faceunits  # noqa: E402
 

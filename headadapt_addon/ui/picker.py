@@ -8,8 +8,8 @@ Right-click or Esc: finish. The placement logic lives in landmarks.py (tested he
 import bpy
 import numpy as np
 
-from . import landmarks
-from .core import mpeg4
+from ..blender import landmarks
+from ..core import mpeg4
 
 _draw_handles = []
 

@@ -11,9 +11,9 @@ import bpy
 import numpy as np
 from bpy_extras.io_utils import ExportHelper, ImportHelper
 
-from . import bridge, landmarks, scene
-from .core import mpeg4
-from .core.exceptions import HeadAdaptError
+from ..blender import bridge, landmarks, scene
+from ..core import mpeg4
+from ..core.exceptions import HeadAdaptError
 
 _TEMPLATE = None
 
@@ -22,7 +22,7 @@ def template():
     """The bundled template (loaded once per session)."""
     global _TEMPLATE
     if _TEMPLATE is None:
-        from .core.template import load_template
+        from ..core.template import load_template
         _TEMPLATE = load_template()
     return _TEMPLATE
 
@@ -108,7 +108,7 @@ class HEADADAPT_OT_import_landmarks(_Base, ImportHelper, bpy.types.Operator):
         return scan_problem(context) is None
 
     def execute(self, context):
-        from .core import meshio
+        from ..core import meshio
         try:
             pts = meshio.read_landmarks(self.filepath)
         except HeadAdaptError as exc:
@@ -138,7 +138,7 @@ class HEADADAPT_OT_export_landmarks(ExportHelper, bpy.types.Operator):
         return scan_problem(context) is None and bool(landmarks.get_landmarks(settings(context).scan))
 
     def execute(self, context):
-        from .core import meshio
+        from ..core import meshio
         pts = landmarks.get_landmarks(settings(context).scan)
         try:
             meshio.write_landmarks(self.filepath, pts, template_sha256=template().meta["content_sha256"])
@@ -179,7 +179,7 @@ class HEADADAPT_OT_suggest_landmarks(_Base, bpy.types.Operator):
         return calibration_ready(context)
 
     def execute(self, context):
-        from .core import suggest
+        from ..core.adapt import suggest
         scan, verts, tris = _scan_arrays(context)
         try:
             proposed = suggest.suggest_fdps(template(), verts, tris, landmarks.get_landmarks(scan))
@@ -221,7 +221,7 @@ class HEADADAPT_OT_calibrate(_Base, bpy.types.Operator):
         return calibration_ready(context)
 
     def execute(self, context):
-        from .core import calibration
+        from ..core.adapt import calibration
         s = settings(context)
         pts = landmarks.get_landmarks(s.scan)
         tpl_pts = template().fdp_points()
@@ -263,9 +263,9 @@ class HEADADAPT_OT_adapt(_Base, bpy.types.Operator):
         return calibration_ready(context)
 
     def execute(self, context):
-        from . import blendout
-        from .core import outcome_text
-        from .core.adapt import AdaptOptions, adapt
+        from ..blender import blendout
+        from ..core.adapt import outcome_text
+        from ..core.adapt.pipeline import AdaptOptions, adapt
         s = settings(context)
         problem = scan_problem(context)
         if problem:
@@ -323,7 +323,7 @@ class HEADADAPT_OT_bake_expressions(_Base, bpy.types.Operator):
         return head_root(context) is not None
 
     def execute(self, context):
-        from . import blendout
+        from ..blender import blendout
         root = head_root(context)
         if root is None:
             return self.fail("no head: add the template or adapt first")
@@ -355,8 +355,8 @@ class HEADADAPT_OT_import_fap(_Base, ImportHelper, bpy.types.Operator):
         return head_root(context) is not None
 
     def execute(self, context):
-        from . import animation
-        from .core.fapfile import read_fap
+        from ..blender import animation
+        from ..core.fapfile import read_fap
         root = head_root(context)
         try:
             anim = read_fap(self.filepath)

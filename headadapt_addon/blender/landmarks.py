@@ -8,7 +8,7 @@ import json
 
 import numpy as np
 
-from .core import mpeg4
+from ..core import mpeg4
 
 PROP = "headadapt_landmarks"
 SUGGESTED_PROP = "headadapt_suggested"

@@ -2,7 +2,7 @@
 
 import bpy
 
-from .core import mpeg4
+from ..core import mpeg4
 
 
 def _is_mesh(_self, obj):

@@ -14,8 +14,9 @@ import time
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from . import drive, mpeg4, physics
-from .anatomy import surface_point
+from . import drive, model as physics
+from .. import mpeg4
+from ..anatomy import surface_point
 
 JAW_FOLLOWERS = ("mandible", "teeth_lower", "tongue")
 

@@ -5,9 +5,10 @@ import textwrap
 
 import bpy
 
-from . import landmarks, scene
-from .ops import head_root
-from .core import mpeg4, outcome_text
+from ..blender import landmarks, scene
+from .operators import head_root
+from ..core import mpeg4
+from ..core.adapt import outcome_text
 
 PANELS = (
     ("TEMPLATE", "Template"),

@@ -11,8 +11,8 @@ import dataclasses
 
 import numpy as np
 
-from . import mpeg4
-from .exceptions import LandmarkError
+from .. import mpeg4
+from ..exceptions import LandmarkError
 
 MIN_FDPS = 4
 

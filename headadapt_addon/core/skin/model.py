@@ -36,8 +36,8 @@ from scipy.sparse.linalg import splu
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
-from . import geometry, spatial
-from .inside import winding_numbers
+from ..mesh import geometry, spatial
+from ..mesh.inside import winding_numbers
 
 LAYER_DEPTHS = (0.0, 0.3, 0.7)        # fractions of the tissue depth: epidermis, dermis, hypodermis
 STIFFNESS = {"epidermis": 1.0, "dermis": 0.3, "hypodermis": 0.8, "vertical": 0.6, "diagonal": 0.2}

@@ -7,10 +7,10 @@ import bpy
 import numpy as np
 
 from . import bridge, scene
-from .core import mpeg4
-from .core.drive import FAP_HEAD
-from .core.anatomy import Anatomy
-from .core.exceptions import HeadAdaptError
+from ..core import mpeg4
+from ..core.skin.drive import FAP_HEAD
+from ..core.anatomy import Anatomy
+from ..core.exceptions import HeadAdaptError
 
 JAW_CHILDREN = ("mandible", "teeth_lower")     # meshes stored relative to the jaw pivot empty
 PREVIEW_FRAMES = 30                            # frames per expression in the preview

@@ -6,7 +6,7 @@ The only place where mesh data crosses between bpy and the numpy core.
 import bpy
 import numpy as np
 
-from .core.exceptions import MeshError
+from ..core.exceptions import MeshError
 
 
 def mesh_arrays(obj, *, world=True, depsgraph=None):

@@ -16,8 +16,10 @@ from scipy import sparse
 from scipy.sparse.linalg import splu
 from scipy.spatial import Delaunay, cKDTree
 
-from . import calibration, geometry, metrics, mpeg4, rbf, spatial
-from .exceptions import LandmarkError
+from . import calibration, metrics, rbf
+from ..mesh import geometry, spatial
+from .. import mpeg4
+from ..exceptions import LandmarkError
 
 MM = 1000.0
 TINY = 1e-12

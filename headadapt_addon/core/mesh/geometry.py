@@ -6,7 +6,7 @@ All functions take verts (n,3) float and tris (k,3) int and work in the verts' o
 import numpy as np
 from scipy import sparse
 
-from .exceptions import MeshError
+from ..exceptions import MeshError
 
 
 def face_areas(v, t):

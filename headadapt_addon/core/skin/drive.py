@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import re
 
-from . import mpeg4
+from .. import mpeg4
 
 
 def _lr(recipe_l):

@@ -2,8 +2,9 @@
 
 import numpy as np
 
-from . import calibration, rbf, spatial
-from .adapt import SCANNER_VISIBLE_PARTS
+from . import calibration, rbf
+from ..mesh import spatial
+from .pipeline import SCANNER_VISIBLE_PARTS
 
 
 def suggest_fdps(tpl, scan_verts, scan_tris, placed):

@@ -9,8 +9,8 @@ import bpy
 import numpy as np
 
 from . import bridge, scene
-from .core.anatomy import transfer
-from .core.exceptions import FileFormatError
+from ..core.anatomy import transfer
+from ..core.exceptions import FileFormatError
 
 RESULT_COLLECTION = "HeadAdapt result"
 
@@ -30,7 +30,7 @@ def build_result_objects(tpl, result, target_scene, scan_matrix=None):
     """
     import mathutils
 
-    from .ops import heat_colours
+    from ..ui.operators import heat_colours
 
     coll = bpy.data.collections.new(RESULT_COLLECTION)
     target_scene.collection.children.link(coll)
@@ -73,7 +73,7 @@ def build_result_objects(tpl, result, target_scene, scan_matrix=None):
 def bake_result(tpl, root, kinds=("expression", "viseme", "fap"), preview=True, progress=None):
     """Bake expressions/visemes/FAPs of a head hierarchy to shape keys (+ the preview action); timings."""
     from . import animation
-    from .core import bake
+    from ..core.skin import bake
     keys, timing = bake.bake(tpl, animation.anatomy_from_objects(tpl, root), kinds=kinds, progress=progress)
     animation.write_shape_keys(root, keys)
     if preview and "expression" in kinds:

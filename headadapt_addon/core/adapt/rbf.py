@@ -13,7 +13,7 @@ from scipy import sparse
 from scipy.sparse.linalg import splu
 from scipy.spatial import cKDTree
 
-from .exceptions import LandmarkError
+from ..exceptions import LandmarkError
 
 _CHUNK = 4096
 
