@@ -71,7 +71,7 @@ def run_adapt(scan_path, landmarks_path, out_dir, levels=4, calibration="auto", 
     report. Progress goes to log, one line per warning to warn; report["outcome"]["ok"] says whether
     the fit can be trusted (main: exit code 3 if not)."""
     from .core import meshio
-    from .core.adapt import outcome_text
+    from .core.adapt import outcome as outcome_text
     from .core.adapt.pipeline import AdaptOptions, adapt
     from .core.template import load_template
 
@@ -153,7 +153,7 @@ def run_folder(folder, out, jobs=0, levels=4, calibration="auto", keep_flagged=F
     import os
 
     from .core import meshio
-    from .core.adapt import outcome_text
+    from .core.adapt import outcome as outcome_text
     pairs = find_pairs(folder)
     if not pairs:
         from .core.exceptions import FileFormatError

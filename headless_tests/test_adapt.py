@@ -8,7 +8,7 @@ import sys
 import numpy as np
 import pytest
 
-from headadapt_addon.core.adapt import pipeline as core_adapt
+from headadapt_addon.core import adapt as core_adapt
 from headadapt_addon.core.mesh import geometry
 from headadapt_addon.core.exceptions import HeadAdaptError
 from headadapt_addon.core.template import load_template

@@ -4,8 +4,14 @@ move the template toward that known answer, and the clicks' checks must tell rig
 import numpy as np
 import pytest
 
-from headadapt_addon.core.adapt import pipeline as adapt, calibration
-from headadapt_addon.core import mpeg4
+from headadapt_addon.core import adapt, mpeg4
+from headadapt_addon.core.adapt import calibration
+from headadapt_addon.core.adapt.clicks import check_clicks
+from headadapt_addon.core.adapt.fit import Fit, Pairs, ScanSide
+from headadapt_addon.core.adapt.level0 import AffineMap, feature_mesh, global_affine, global_rbf, level_zero
+from headadapt_addon.core.adapt.levels import csrbf_level, fit_level, solve_spd
+from headadapt_addon.core.adapt.options import FACE_REGIONS
+from headadapt_addon.core.adapt.pairs import curvature_pairs, feature_mesh_pairs, surface_pairs
 from headadapt_addon.core.template import load_template
 
 MM = 1000.0
@@ -40,9 +46,9 @@ def case(tpl):
 
 def _fit(tpl, case, **kw):
     scan_v, scan_t, _, clicks = case
-    scan = adapt._ScanSide(scan_v, scan_t)
     options = adapt.AdaptOptions(**kw)
-    fit = adapt._Fit(tpl, scan, options, float(np.ptp(tpl.skin.verts[:, 0])) / 10)
+    scan = ScanSide(scan_v, scan_t, options)
+    fit = Fit(tpl, scan, options, float(np.ptp(tpl.skin.verts[:, 0])) / 10)
     names = list(clicks)
     P = np.array([tpl.fdp_points()[k] for k in names])
     Q = np.array([clicks[k] for k in names])
@@ -50,7 +56,7 @@ def _fit(tpl, case, **kw):
 
 
 def _face(tpl):
-    return np.isin(tpl.region, [tpl.region_names.index(r) for r in adapt.FACE_REGIONS])
+    return np.isin(tpl.region, [tpl.region_names.index(r) for r in FACE_REGIONS])
 
 
 def _corr_mm(tpl, verts, truth):
@@ -61,7 +67,7 @@ def test_global_rbf_interpolates_the_clicks_and_keeps_an_affine_map(tpl):
     P = np.array(list(tpl.fdp_points().values()))[:20]
     A = np.array([[1.05, 0.02, 0.0], [0.0, 0.97, 0.03], [0.01, 0.0, 1.02]])
     Q = P @ A.T + np.array([0.01, -0.02, 0.005])
-    f = adapt.global_rbf(P, Q)
+    f = global_rbf(P, Q)
     assert np.abs(P + f(P) - Q).max() < 1e-9                      # interpolates
     x = tpl.skin.verts[::50]
     assert np.abs(x + f(x) - (x @ A.T + np.array([0.01, -0.02, 0.005]))).max() < 1e-9   # affine exact
@@ -71,7 +77,7 @@ def test_global_affine_finds_the_depth_the_clicks_cannot_see(tpl, case):
     fit, names, P, Q = _fit(tpl, case)
     truth = case[2]
     before = _corr_mm(tpl, tpl.skin.verts, truth)
-    f = adapt.global_affine(fit, adapt.Pairs(P, Q, np.full(len(P), 20.0)), fit.threshold, 8)
+    f = global_affine(fit, Pairs(P, Q, np.full(len(P), 20.0)), fit.threshold, 8)
     after = _corr_mm(tpl, tpl.skin.verts + f(tpl.skin.verts), truth)
     assert after < 0.5 * before, (before, after)
     assert abs(f.matrix[1, 1] - 1.08) < 0.03                       # the depth stretch, found on the surface
@@ -79,9 +85,9 @@ def test_global_affine_finds_the_depth_the_clicks_cannot_see(tpl, case):
 
 def test_surface_pairs_lie_on_the_scan_and_respect_reach(tpl, case):
     fit, names, P, Q = _fit(tpl, case)
-    adapt.level_zero(fit, adapt.Pairs(P, Q, np.ones(len(P))))
+    level_zero(fit, Pairs(P, Q, np.ones(len(P))))
     for along in (False, True):
-        pairs = adapt.surface_pairs(fit, 0.004, along_normal=along)
+        pairs = surface_pairs(fit, 0.004, along_normal=along)
         assert len(pairs) > 1000
         d = fit.scan.query.closest_points(pairs.q)[2]
         assert np.percentile(d, 95) < (2e-4 if not along else 1e-6)   # targets on the scan
@@ -91,11 +97,11 @@ def test_surface_pairs_lie_on_the_scan_and_respect_reach(tpl, case):
 
 def test_feature_mesh_pairs_split_triangles_and_pair_both_surfaces(tpl, case):
     fit, names, P, Q = _fit(tpl, case)
-    adapt.level_zero(fit, adapt.Pairs(P, Q, np.ones(len(P))))
-    mesh = {"q": Q.copy(), "t": adapt.feature_mesh(P, tpl.skin.verts.mean(axis=0)), "dead": None}
+    level_zero(fit, Pairs(P, Q, np.ones(len(P))))
+    mesh = {"q": Q.copy(), "t": feature_mesh(P, tpl.skin.verts.mean(axis=0)), "dead": None}
     mesh["dead"] = np.zeros(len(mesh["t"]), bool)
     n_tri = len(mesh["t"])
-    pairs = adapt.feature_mesh_pairs(fit, mesh, fit.threshold)
+    pairs = feature_mesh_pairs(fit, mesh, fit.threshold)
     assert len(pairs) >= 0.5 * n_tri > 0
     assert len(mesh["t"]) == n_tri + 2 * len(pairs) and len(mesh["q"]) == len(P) + len(pairs)
     assert fit.scan.query.closest_points(pairs.q)[2].max() < 1e-6            # on the scan
@@ -105,9 +111,9 @@ def test_feature_mesh_pairs_split_triangles_and_pair_both_surfaces(tpl, case):
 
 def test_curvature_pairs_come_from_curved_places(tpl, case):
     fit, names, P, Q = _fit(tpl, case)
-    adapt.level_zero(fit, adapt.Pairs(P, Q, np.ones(len(P))))
+    level_zero(fit, Pairs(P, Q, np.ones(len(P))))
     box = np.ones(len(fit.scan.verts), bool)
-    pairs = adapt.curvature_pairs(fit, box, 100, 0.004, 0.004)
+    pairs = curvature_pairs(fit, box, 100, 0.004, 0.004)
     assert len(pairs) > 30
     H, valid = fit.scan.curvature(box)
     at = np.argmin(np.linalg.norm(fit.scan.verts[None] - pairs.q[:, None], axis=2), axis=1)
@@ -116,13 +122,13 @@ def test_curvature_pairs_come_from_curved_places(tpl, case):
 
 def test_csrbf_level_fits_and_its_stiffness_smooths(tpl, case):
     fit, names, P, Q = _fit(tpl, case)
-    fit.functions = [adapt.AffineMap(np.eye(3), np.zeros(3))]
+    fit.functions = [AffineMap(np.eye(3), np.zeros(3))]
     truth = case[2]
     use = np.flatnonzero(_face(tpl))[::3]
-    pairs = adapt.Pairs(tpl.skin.verts[use], truth[use], np.ones(len(use)), use)
+    pairs = Pairs(tpl.skin.verts[use], truth[use], np.ones(len(use)), use)
     errs, bends = [], []
     for stiffness in (1e-4, 10.0):
-        f = adapt.csrbf_level(fit, pairs, 0.024, stiffness)
+        f = csrbf_level(fit, pairs, 0.024, stiffness)
         fit.warm.clear()
         off = f(tpl.skin.verts)
         errs.append(np.sqrt(np.mean(np.sum((tpl.skin.verts[use] + off[use] - truth[use]) ** 2, axis=1))) * MM)
@@ -133,11 +139,11 @@ def test_csrbf_level_fits_and_its_stiffness_smooths(tpl, case):
 
 def test_fit_level_converges_onto_the_scan(tpl, case):
     fit, names, P, Q = _fit(tpl, case)
-    clicks = adapt.Pairs(P, Q, np.ones(len(P)))
-    adapt.level_zero(fit, clicks)
+    clicks = Pairs(P, Q, np.ones(len(P)))
+    level_zero(fit, clicks)
     before = np.median(fit.scan.query.closest_points(fit.current()[_face(tpl)])[2])
     for k in (1, 2, 3):
-        adapt.fit_level(fit, clicks, k)
+        fit_level(fit, clicks, k)
     after = np.median(fit.scan.query.closest_points(fit.current()[_face(tpl)])[2])
     assert after < 0.2 * before and after * MM < 0.1, (before * MM, after * MM)
 
@@ -151,12 +157,12 @@ def test_adapt_recovers_the_known_deformation(tpl, case):
 
 def test_right_clicks_are_kept_a_wrong_one_is_dropped(tpl, case):
     fit, names, P, Q = _fit(tpl, case)
-    assert adapt.check_clicks(fit, names, P, Q, np.ones(len(P))) == {}
+    assert check_clicks(fit, names, P, Q, np.ones(len(P))) == {}
     i = names.index("8.3")
     wrong = Q.copy()
     q, _, _ = fit.scan.query.closest_points((Q[i] + np.array([0.0, 0.0, 0.02]))[None])   # 2 cm up the cheek
     wrong[i] = q[0]
-    assert set(adapt.check_clicks(fit, names, P, wrong, np.ones(len(P)))) == {"8.3"}
+    assert set(check_clicks(fit, names, P, wrong, np.ones(len(P)))) == {"8.3"}
 
 
 def test_the_nose_tip_is_kept_with_eight_clicks(tpl, case):
@@ -170,7 +176,7 @@ def test_drops_never_go_below_what_calibration_needs(tpl, case):
     fit, names, P, Q = _fit(tpl, case)
     rng = np.random.default_rng(3)
     wild = Q + rng.normal(0, 0.03, Q.shape)                         # every click 5 cm off
-    dropped = adapt.check_clicks(fit, names, P, wild, np.ones(len(P)))
+    dropped = check_clicks(fit, names, P, wild, np.ones(len(P)))
     assert len(names) - len(dropped) >= calibration.MIN_FDPS
 
 
@@ -230,8 +236,8 @@ def test_a_closed_mouth_s_lip_corners_may_share_one_click(tpl, case):
         calibration.validate_landmarks(clicks)
 
 
-def test_a_level_s_solve_matches_a_direct_solve_warm_or_cold_and_by_its_factorisation(monkeypatch):
-    """adapt._solve_spd on a level-like system (a smoothness Gram matrix plus a ridge, three
+def test_a_level_s_solve_matches_a_direct_solve_warm_or_cold_and_by_its_factorisation():
+    """solve_spd on a level-like system (a smoothness Gram matrix plus a ridge, three
     right-hand sides, one of them zero): diagonal-preconditioned CG, cold or warm; when CG is too
     slow, a sparse LU, which the next round's (slightly different) system uses as preconditioner."""
     from scipy import sparse
@@ -249,11 +255,10 @@ def test_a_level_s_solve_matches_a_direct_solve_warm_or_cold_and_by_its_factoris
     want = exact(A)
     scale = np.abs(want).max()
     for x0 in (None, want + 0.01 * rng.standard_normal(want.shape)):
-        x, factor = adapt._solve_spd(A, b, x0)
+        x, factor = solve_spd(A, b, x0)
         assert factor is None and np.abs(x - want).max() < 1e-3 * scale
-    monkeypatch.setattr(adapt, "JACOBI_STEPS", 2)         # too few: the system is factorised
-    x, factor = adapt._solve_spd(A, b)
+    x, factor = solve_spd(A, b, jacobi_steps=2)          # too few: the system is factorised
     assert factor is not None and np.abs(x - want).max() < 1e-9 * scale
     B = (A + sparse.diags(rng.uniform(0.0, 0.02, n))).tocsr()    # the next round: a little different
-    x, again = adapt._solve_spd(B, b, x, factor)
+    x, again = solve_spd(B, b, x, factor)
     assert again is factor and np.abs(x - exact(B)).max() < 1e-3 * scale

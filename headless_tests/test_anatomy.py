@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from headadapt_addon.core.adapt import pipeline as adapt
+from headadapt_addon.core import adapt
 from headadapt_addon.core import anatomy
 from headadapt_addon.core.mesh import geometry, spatial
 from headadapt_addon.core.mesh.inside import winding_numbers

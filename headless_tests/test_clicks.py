@@ -3,7 +3,7 @@ never dropped, a slip of the hand is, swapped left/right labels are put right an
 import numpy as np
 import pytest
 
-from headadapt_addon.core.adapt import pipeline as adapt
+from headadapt_addon.core import adapt
 from headadapt_addon.core import mpeg4
 from headadapt_addon.core.mesh import spatial
 from headadapt_addon.core.template import load_template

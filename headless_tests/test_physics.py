@@ -26,7 +26,7 @@ def adapted(tpl, request):
     """(Anatomy, baked keys, model) of the template adapted onto a generated head (three seeds:
     thin and full lips, narrow and wide jaws bring the lips onto different bone rims)."""
     testheads = pytest.importorskip("tools.testheads")
-    from headadapt_addon.core.adapt import pipeline as adapt
+    from headadapt_addon.core import adapt
     try:
         head = testheads.make_head(request.param)
     except FileNotFoundError as exc:

@@ -9,7 +9,7 @@ import warnings
 import numpy as np
 import pytest
 
-from headadapt_addon.core.adapt import pipeline as adapt
+from headadapt_addon.core import adapt
 from headadapt_addon.core import anatomy, meshio
 from headadapt_addon.core.mesh import geometry
 from headadapt_addon.core.mesh.inside import winding_numbers

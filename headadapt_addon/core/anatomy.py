@@ -83,7 +83,7 @@ def _pocket_tris(tpl, hidden):
     return tpl.skin.tris[hidden[tpl.skin.tris].all(axis=1)]
 
 
-def keep_inside(tpl, bone_template, bone_mapped, skin_adapted, clearance=0.0015):  # noqa: C901
+def keep_inside(tpl, bone_template, bone_mapped, skin_adapted, clearance=0.0015, backend="numpy"):  # noqa: C901
     """Mapped bone points (n,3), moved where needed to at least `clearance` under the adapted skin.
 
     Each bone point keeps, from the template, its nearest point on the visible skin (face +
@@ -98,7 +98,7 @@ def keep_inside(tpl, bone_template, bone_mapped, skin_adapted, clearance=0.0015)
 
     hidden = _hidden(tpl)
     faces = tpl.skin.tris[~hidden[tpl.skin.tris].any(axis=1)]
-    near, face, depth0 = MeshQuery(tpl.skin.verts, faces).closest_points(bone_template)
+    near, face, depth0 = MeshQuery(tpl.skin.verts, faces, backend).closest_points(bone_template)
     clearance = np.minimum(clearance, 0.8 * depth0)      # never deeper than the template itself had it
     v0 = tpl.skin.verts[faces[face]]
     bary = barycentric(near, v0[:, 0], v0[:, 1], v0[:, 2])
@@ -118,7 +118,7 @@ def keep_inside(tpl, bone_template, bone_mapped, skin_adapted, clearance=0.0015)
         still = near_pocket[w < 0.5]
         if len(still):                 # out through the pocket's lining, `clearance` into the tissue
             pocket_t = _pocket_tris(tpl, hidden)
-            lining, face, _ = MeshQuery(skin_adapted, pocket_t).closest_points(out[still])
+            lining, face, _ = MeshQuery(skin_adapted, pocket_t, backend).closest_points(out[still])
             inward = -clearance[still, None] * face_normals(skin_adapted, pocket_t)[face]
             # behind a thin lip the tissue may be thinner than the clearance: a shorter step then
             for share in (1.0, 0.5, 0.25):
@@ -295,7 +295,8 @@ def transfer(tpl, result):
     parts["skin"], offsets = seat_orbits(tpl, result.scan, parts, rigid, mapped)
     pressed = {}
     for name in mapped:
-        pressed[name] = keep_inside(tpl, tpl.parts[name].verts, mapped[name] + offsets[name], parts["skin"])
+        pressed[name] = keep_inside(tpl, tpl.parts[name].verts, mapped[name] + offsets[name], parts["skin"],
+                                    backend=result.backend)
         # each point goes under its own skin point: neighbours pressed different ways fold the
         # bone (orbit floors, cheeks); relax the folds, giving back as much of the press as can be
         relaxed = geometry.unfold(tpl.parts[name].verts, pressed[name], tris[name])[0]

@@ -264,7 +264,7 @@ class HEADADAPT_OT_adapt(_Base, bpy.types.Operator):
 
     def execute(self, context):
         from ..blender import blendout
-        from ..core.adapt import outcome_text
+        from ..core.adapt import outcome as outcome_text
         from ..core.adapt.pipeline import AdaptOptions, adapt
         s = settings(context)
         problem = scan_problem(context)

@@ -8,7 +8,7 @@ import bpy
 from ..blender import landmarks, scene
 from .operators import head_root
 from ..core import mpeg4
-from ..core.adapt import outcome_text
+from ..core.adapt import outcome as outcome_text
 
 PANELS = (
     ("TEMPLATE", "Template"),

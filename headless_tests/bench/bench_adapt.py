@@ -41,7 +41,7 @@ import numpy as np
 ROOT = pathlib.Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
 
-from headadapt_addon.core.adapt import pipeline as adapt
+from headadapt_addon.core import adapt
 from headadapt_addon.core.mesh import geometry, spatial
 from headadapt_addon.core import meshio, mpeg4  # noqa: E402
 from headadapt_addon.core.template import load_template  # noqa: E402

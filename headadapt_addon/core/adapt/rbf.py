@@ -14,6 +14,7 @@ from scipy.sparse.linalg import splu
 from scipy.spatial import cKDTree
 
 from ..exceptions import LandmarkError
+from ..tol import TINY
 
 _CHUNK = 4096
 
@@ -64,7 +65,7 @@ def fit_rbf(centres, values, rho=0.0):
     except (np.linalg.LinAlgError, scipy.linalg.LinAlgError) as exc:
         raise LandmarkError("the RBF system is singular: two point pairs coincide or all points lie "
                             "in one plane") from exc
-    if not np.isfinite(x).all() or np.linalg.norm(a @ x - b) > 1e-6 * max(np.linalg.norm(b), 1e-12):
+    if not np.isfinite(x).all() or np.linalg.norm(a @ x - b) > 1e-6 * max(np.linalg.norm(b), TINY):
         raise LandmarkError("the RBF system is singular: two point pairs coincide or all points lie in one plane")
     return GlobalRBF(p, x[:m], x[m:], origin)
 
@@ -125,7 +126,7 @@ def fit_csrbf(centres, values, sigma):
     rhs = _sum_rows(j, phi[:, None, None] * X[:, :, None] * v[i][:, None, :], m)
     count = np.bincount(j, minlength=m)
     ridge = (1e-6 * np.trace(M[:, 1:, 1:], axis1=1, axis2=2) + 1e-9 * sigma ** 2)[:, None, None] * np.eye(4)
-    ridge[:, 0, 0] = 1e-12
+    ridge[:, 0, 0] = TINY
     coefs = np.linalg.solve(M + ridge, rhs)           # (m, 4, k)
     few = count < 8                                  # too few neighbours for a plane: constant fit
     coefs[few, 1:] = 0.0

@@ -4,7 +4,7 @@ import numpy as np
 
 from . import calibration, rbf
 from ..mesh import spatial
-from .pipeline import SCANNER_VISIBLE_PARTS
+from .options import SCANNER_VISIBLE_PARTS
 
 
 def suggest_fdps(tpl, scan_verts, scan_tris, placed):

@@ -7,6 +7,7 @@ import numpy as np
 from scipy import sparse
 
 from ..exceptions import MeshError
+from ..tol import TINY
 
 
 def face_areas(v, t):
@@ -70,7 +71,7 @@ def cotan_laplacian(v, t):
     # a degenerate triangle (marching cubes makes some: zero area, or two corners at one spot) has
     # no angles to speak of; it adds nothing, instead of cotangents of 1e300
     longest2 = np.max([np.einsum("ij,ij->i", e, e) for e in (e0, e1, e2)], axis=0)
-    ok = area2 > 1e-12 * longest2
+    ok = area2 > TINY * longest2
     safe = np.where(ok, area2, 1.0)
     cot0 = np.where(ok, np.einsum("ij,ij->i", -e2, e1) / safe, 0.0)
     cot1 = np.where(ok, np.einsum("ij,ij->i", -e0, e2) / safe, 0.0)
@@ -149,7 +150,7 @@ class FoldCheck:
         self.t = t
         self.n0 = np.cross(rest[t[:, 1]] - rest[t[:, 0]], rest[t[:, 2]] - rest[t[:, 0]])
         longest = np.linalg.norm(rest[t] - rest[np.roll(t, 1, axis=1)], axis=2).max(axis=1)
-        self.ok = np.linalg.norm(self.n0, axis=1) > sliver * np.maximum(longest, 1e-12) ** 2
+        self.ok = np.linalg.norm(self.n0, axis=1) > sliver * np.maximum(longest, TINY) ** 2
 
     def __call__(self, x):
         t = self.t

@@ -1,4 +1,4 @@
-"""Nearest-surface queries and ray casts on a triangle mesh, exact, with scipy kd-trees.
+"""Nearest-surface queries and ray casts on a triangle mesh, exact: scipy kd-trees, or Blender's BVH if asked.
 
 Triangles are grouped by size; each group has a kd-tree of centroids and the largest centroid-to-
 corner radius R of its triangles. A triangle whose centroid is D from a point has no point nearer
@@ -10,6 +10,8 @@ import dataclasses
 
 import numpy as np
 from scipy.spatial import cKDTree
+
+from ..tol import EXACT, TINY
 
 
 def closest_on_triangles(p, a, b, c):
@@ -51,7 +53,7 @@ def closest_on_triangles(p, a, b, c):
     return q, bary
 
 
-def ray_triangles(o, d, a, b, c, eps=1e-12):
+def ray_triangles(o, d, a, b, c, eps=TINY):
     """Moller-Trumbore: (hit (n,), t (n,), u (n,), v (n,)) of rays o + t d against triangles (a,b,c), any t."""
     e1, e2 = b - a, c - a
     pvec = np.cross(d, e2)
@@ -127,26 +129,28 @@ def barycentric(points, a, b, c):
 class MeshQuery:
     """Closest-point and ray queries on one triangle mesh (built once, reused).
 
-    backend "bvh" uses Blender's C BVH tree (mathutils) with a loop over queries; "numpy" the exact
-    kd-tree method of this module; "auto" takes the BVH when mathutils is importable. Both give
-    the same answers (tested); the BVH is several times faster on large scans.
+    backend "numpy" (the default) is the exact kd-tree method of this module; "bvh" uses Blender's C
+    BVH tree (mathutils, inside Blender or beside the bpy module) with a loop over queries. The
+    caller chooses: nothing here imports Blender unless asked to. Both give the same answers (tested).
     """
 
-    def __init__(self, verts, tris, backend="auto"):
+    def __init__(self, verts, tris, backend="numpy"):
         self.verts = np.asarray(verts, dtype=np.float64)
         self.tris = np.asarray(tris, dtype=np.int64)
-        bvh = _bvh_class() if backend in ("auto", "bvh") else None
-        if backend == "bvh" and bvh is None:
-            raise ImportError("the bvh backend needs mathutils (Blender or the bpy module)")
-        self.backend = "bvh" if bvh is not None else "numpy"
-        if self.backend == "bvh":
+        if backend not in ("numpy", "bvh"):
+            raise ValueError(f"unknown spatial backend {backend!r} (numpy or bvh)")
+        self.backend = backend
+        if backend == "bvh":
+            bvh = _bvh_class()
+            if bvh is None:
+                raise ImportError("the bvh backend needs mathutils (Blender or the bpy module)")
             self.bvh = bvh.FromPolygons(self.verts.tolist(), self.tris.tolist(), all_triangles=True)
             return
         corners = self.verts[self.tris]
         self.centroids = corners.mean(axis=1)
         radius = np.linalg.norm(corners - self.centroids[:, None], axis=2).max(axis=1)
         # size groups: each at most 3x the smallest radius of the group
-        base = max(np.median(radius), 1e-12)
+        base = max(np.median(radius), TINY)
         level = np.floor(np.log(np.maximum(radius, base) / base) / np.log(3.0)).astype(int)
         self.vertex_tree = cKDTree(self.verts[np.unique(self.tris)])
         self.groups = []
@@ -171,7 +175,7 @@ class MeshQuery:
         best_f = np.zeros(n, np.int64)
         best_q = np.zeros((n, 3))
         for idx, tree, R in self.groups:
-            pid, local = _candidates(tree, points, bound + R + 1e-12 * max(R, 1e-300))
+            pid, local = _candidates(tree, points, bound + R + EXACT * max(R, 1e-300))
             if len(pid) == 0:
                 continue
             faces = idx[local]
@@ -209,7 +213,7 @@ class MeshQuery:
                 step, (reach - lo)[ray_id] / np.maximum(count[ray_id] - 1, 1))
             samples = o[ray_id] + s[:, None] * d[ray_id]
             # a triangle meets the ray within `step/2` of a sample only if its centroid is within step/2 + R
-            sid, local = _candidates(tree, samples, np.full(len(samples), 0.5 * step + R + 1e-12 * max(R, 1e-300)))
+            sid, local = _candidates(tree, samples, np.full(len(samples), 0.5 * step + R + EXACT * max(R, 1e-300)))
             if len(sid) == 0:
                 continue
             cand_ray, cand_face = ray_id[sid], idx[local]

@@ -38,6 +38,7 @@ from scipy.spatial.transform import Rotation
 
 from ..mesh import geometry, spatial
 from ..mesh.inside import winding_numbers
+from ..tol import TINY
 
 LAYER_DEPTHS = (0.0, 0.3, 0.7)        # fractions of the tissue depth: epidermis, dermis, hypodermis
 STIFFNESS = {"epidermis": 1.0, "dermis": 0.3, "hypodermis": 0.8, "vertical": 0.6, "diagonal": 0.2}
@@ -181,7 +182,7 @@ class SkinModel:
         use_md = d_md < d_cr
         dist = np.minimum(d_md, d_cr)
         closest = np.where(use_md[:, None], self.on_jaw(c_md, rot, t), c_cr)
-        away = (pts - closest) / np.maximum(dist, 1e-12)[:, None]
+        away = (pts - closest) / np.maximum(dist, TINY)[:, None]
         side = np.where(use_md, np.einsum("ij,ij->i", local - c_md, n_md[f_md]),
                         np.einsum("ij,ij->i", pts - c_cr, n_cr[f_cr]))
         face_out = side >= 0.999 * dist
@@ -267,7 +268,7 @@ class SkinModel:
             mid = 0.5 * (lo + hi)
             ins = self._inside(x[bad] + mid[:, None] * (home[bad] - x[bad]), rot, t)
             lo, hi = np.where(ins, mid, lo), np.where(ins, hi, mid)
-        span = np.maximum(np.linalg.norm(home[bad] - x[bad], axis=1), 1e-12)
+        span = np.maximum(np.linalg.norm(home[bad] - x[bad], axis=1), TINY)
         frac = np.zeros(self.n)
         frac[bad] = np.minimum(hi + self.clearance[bad] / span, 1.0)
         for _ in range(3):                     # neighbours give up part of theirs too
@@ -374,7 +375,7 @@ def _mirror_control(tpl, idx_l, vec_l, n):
 
 def _normalised(idx, direction, weight, strength):
     keep = weight > 0
-    return idx[keep], direction[keep] * (strength * weight[keep] / max(weight.sum(), 1e-12))[:, None]
+    return idx[keep], direction[keep] * (strength * weight[keep] / max(weight.sum(), TINY))[:, None]
 
 
 def build(tpl, anatomy=None):
@@ -399,7 +400,7 @@ def build(tpl, anatomy=None):
     bone_dist = np.column_stack([d_cr, d_md])
     # outward direction of the distance to the bone (robust at the bone's openings and folds)
     bone_fn = skin - closest
-    bone_fn /= np.maximum(np.linalg.norm(bone_fn, axis=1, keepdims=True), 1e-12)
+    bone_fn /= np.maximum(np.linalg.norm(bone_fn, axis=1, keepdims=True), TINY)
     # the head is symmetric by construction: make the bone data exactly so (mirrored controls
     # then give mirrored shapes to rounding)
     if anatomy is None:
@@ -409,7 +410,7 @@ def build(tpl, anatomy=None):
         bone_dist[right] = bone_dist[mir[right]]
         mid = np.abs(skin[:, 0]) < 1e-9                    # midline: the bone normal has no sideways part
         closest[mid, 0], bone_fn[mid, 0] = 0.0, 0.0
-        bone_fn[mid] /= np.maximum(np.linalg.norm(bone_fn[mid], axis=1, keepdims=True), 1e-12)
+        bone_fn[mid] /= np.maximum(np.linalg.norm(bone_fn[mid], axis=1, keepdims=True), TINY)
 
     hidden = _regions(tpl, HIDDEN_REGIONS)
     depth = np.clip(np.where(hidden, 0.002, depth), 0.001, 0.02)
@@ -474,14 +475,14 @@ def _muscle_forces(tpl, rest, normals, n, muscles, sphincters):
         length = np.linalg.norm(axis)
         rel = hyp - a_pt
         dist = np.linalg.norm(rel, axis=1)
-        cosang = rel @ axis / np.maximum(dist * length, 1e-12)
+        cosang = rel @ axis / np.maximum(dist * length, TINY)
         cone = np.cos(max(np.radians(MUSCLE_CONE_DEG), np.arctan2(MUSCLE_MIN_REACH, length)))
         angular = np.clip((cosang - cone) / (1 - cone), 0, 1)
         radial = np.clip(1 - np.abs(dist - length) / max(MUSCLE_BAND * length, MUSCLE_MIN_REACH), 0, 1)
         w = angular * radial * inside
         direction = -rel                                             # toward the attachment, along the skin
         direction -= np.einsum("ij,ij->i", direction, normals)[:, None] * normals
-        direction /= np.maximum(np.linalg.norm(direction, axis=1, keepdims=True), 1e-12)
+        direction /= np.maximum(np.linalg.norm(direction, axis=1, keepdims=True), TINY)
         out[mm["name"]] = _normalised(np.arange(n) + 2 * n, direction, w, strength_of(mm["name"]))
     for sph in sphincters:
         inside = _regions(tpl, sph["regions"])
@@ -492,7 +493,7 @@ def _muscle_forces(tpl, rest, normals, n, muscles, sphincters):
         rho = np.sqrt(u ** 2 + v ** 2)
         w = np.clip(1 - np.abs(rho - 0.8) / 0.6, 0, 1) * inside
         inward = -(u[:, None] * a + v[:, None] * b)
-        inward /= np.maximum(np.linalg.norm(inward, axis=1, keepdims=True), 1e-12)
+        inward /= np.maximum(np.linalg.norm(inward, axis=1, keepdims=True), TINY)
         out[sph["name"]] = _normalised(np.arange(n) + 2 * n, inward, w, strength_of(sph["name"]))
     return out
 

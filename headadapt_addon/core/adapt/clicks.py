@@ -1,0 +1,80 @@
+"""The clicks as evidence (paper sec 8 and beyond): wrong-click detection by the scan's surface,
+left/right labels put right, the closed mouth's lip pairs."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..tol import MM
+from . import calibration
+from .fit import Pairs
+from .level0 import level_zero
+from .levels import fit_level
+
+
+def check_clicks(fit, names, P, Q, weights):
+    """Wrong-click detection (sec 8), by the scan's surface rather than by the other clicks alone:
+    a coarse fit (level 0 and level 1) to the surface and all clicks as soft pairs puts each FDP
+    where the surface and the others say; the click farthest from there, if over confirm_mm, is
+    checked by the same fit without it and dropped only if it is still that far. A right click on a
+    feature the others cannot predict (the nose tip) agrees with the surface and is kept; at least
+    calibration.MIN_FDPS clicks always remain. Returns {name: reason} of the clicks to drop."""
+    o = fit.options
+    keep = np.ones(len(names), bool)
+    out = {}
+
+    def offsets():
+        clicks = Pairs(P[keep], Q[keep], weights[keep])
+        level_zero(fit, clicks)
+        fit_level(fit, clicks, 1, rounds=1)
+        return np.linalg.norm(P + fit.displacement(P) - Q, axis=1) * MM
+
+    off = offsets()
+    while keep.sum() > calibration.MIN_FDPS:
+        i = int(np.argmax(np.where(keep, off, -1.0)))
+        # a face far from the template (a statue, a coarse scan) puts every click farther off
+        limit = max(o.confirm_mm, o.confirm_factor * float(np.median(off[keep])))
+        if off[i] <= limit:
+            break
+        keep[i] = False
+        without = offsets()
+        if without[i] <= limit:               # the surface agrees with it after all
+            keep[i] = True
+            break
+        out[names[i]] = (f"{without[i]:.1f} mm from where the scan's surface and the other clicks put it "
+                         f"(limit {limit:.1f} mm): probably clicked at the wrong spot")
+        off = without
+    return out
+
+
+def handedness_notes(handed, flipped):
+    """Warning lines for left/right labels put right (calibration.check_handedness). All pairs
+    swapped on a scan wound inward is named a mirrored scan (mirroring a mesh turns its winding)."""
+    if handed["all"]:
+        if flipped:
+            return ["the scan looks mirrored (left and right reversed; its triangles are wound inward): "
+                    "its left/right FDP labels were swapped to match; mirror the scan back on X for a "
+                    "head with the person's own sides"]
+        return ["left and right FDP labels look swapped (clicked from the viewer's side?): "
+                "every left/right pair was swapped back (" + ", ".join("/".join(p) for p in handed["swapped"]) + ")"]
+    return [f"FDP {a} and FDP {b} look swapped (left/right): swapped back" for a, b in handed["swapped"]]
+
+
+# FDPs a closed mouth puts within a few millimetres of each other: the upper/lower inner lip points,
+# and the inner/outer lip corners (people may click both at the commissure, one spot)
+CLOSE_LIP_PAIRS = (("2.2", "2.3"), ("2.6", "2.8"), ("2.7", "2.9"), ("2.4", "8.3"), ("2.5", "8.4"))
+
+
+def closed_mouth(names, P, Q, closed=0.003):
+    """On a closed mouth (clicks of a CLOSE_LIP_PAIRS pair within 3 mm), give the pair the template's
+    own small offset about the clicks' midpoint, so click noise cannot cross the lips or turn a lip
+    corner inside out."""
+    Q = Q.copy()
+    pos = {k: i for i, k in enumerate(names)}
+    for a, b in CLOSE_LIP_PAIRS:
+        if a in pos and b in pos:
+            i, j = pos[a], pos[b]
+            if np.linalg.norm(Q[i] - Q[j]) < closed:
+                mid, half = 0.5 * (Q[i] + Q[j]), 0.5 * (P[i] - P[j])
+                Q[i], Q[j] = mid + half, mid - half
+    return Q

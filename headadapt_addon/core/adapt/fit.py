@@ -1,0 +1,204 @@
+"""What the levels share: the calibrated scan with its queries (ScanSide), feature-point pairs
+(Pairs), and the fit in progress (Fit: template, scan, options, the level functions so far)."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+from scipy import sparse
+from scipy.spatial import cKDTree
+
+from ..mesh import geometry, spatial
+from . import metrics, rbf
+
+
+def face_weights(tpl):
+    w = tpl.region_weights[tpl.region]
+    return w[tpl.skin.tris].min(axis=1)
+
+
+class ScanSide:
+    """The calibrated scan with its queries, normals, boundary and curvature (computed once)."""
+
+    def __init__(self, verts, tris, options):
+        self.verts, self.tris = verts, tris
+        self.query = spatial.MeshQuery(verts, tris, backend=options.backend)
+        self.face_normals = geometry.face_normals(verts, tris)
+        self.vertex_normals = geometry.vertex_normals(verts, tris)
+        self.boundary_faces = geometry.boundary_faces(tris)
+        self.boundary_verts = np.zeros(len(verts), bool)
+        self.boundary_verts[tris[self.boundary_faces].ravel()] = True
+        self.vertex_tree = cKDTree(verts)
+        self.coarse = np.median(np.linalg.norm(verts[tris[:, 0]] - verts[tris[:, 1]], axis=1)) > options.dense_spacing
+        self._curv = None
+
+    def nearest_on_plane(self, points):
+        """(point, normal, distance, on a hole's border) per query point for ICP pairs: on a dense scan
+        the nearest scan vertex's tangent plane (a fast stand-in for the closest surface point: off
+        by curvature x spacing^2 / 2, under 0.05 mm at 2 mm spacing), else the closest point."""
+        if self.coarse:
+            q, f, d = self.query.closest_points(points)
+            return q, self.face_normals[f], d, self.boundary_faces[f]
+        _, i = self.vertex_tree.query(points)
+        n = self.vertex_normals[i]
+        q = points - np.einsum("ij,ij->i", points - self.verts[i], n)[:, None] * n
+        return q, n, np.linalg.norm(q - points, axis=1), self.boundary_verts[i]
+
+    def curvature(self, region=None):
+        """(H, valid) per scan vertex; with a vertex mask, computed on the triangles inside it only
+        (the cut's border counts as boundary, so its vertices are not valid)."""
+        if self._curv is None:
+            tris = self.tris if region is None else self.tris[region[self.tris].all(axis=1)]
+            self._curv = geometry.mean_curvature(self.verts, tris)
+        return self._curv
+
+
+@dataclasses.dataclass
+class Pairs:
+    """Feature-point pairs: template points at rest (k,3), their targets (k,3), weights (k,), and the
+    skin vertex each template point is (-1: a point between vertices)."""
+    p: np.ndarray
+    q: np.ndarray
+    w: np.ndarray
+    vertex: np.ndarray = None
+
+    def __post_init__(self):
+        if self.vertex is None:
+            self.vertex = np.full(len(self.p), -1)
+
+    @staticmethod
+    def empty():
+        return Pairs(np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0))
+
+    def __len__(self):
+        return len(self.p)
+
+    def __add__(self, other):
+        return Pairs(np.vstack([self.p, other.p]), np.vstack([self.q, other.q]), np.concatenate([self.w, other.w]),
+                     np.concatenate([self.vertex, other.vertex]))
+
+    def take(self, mask):
+        return Pairs(self.p[mask], self.q[mask], self.w[mask], self.vertex[mask])
+
+
+class Fit:
+    """What the level loop shares: template, scan, options, the fitted level functions so far."""
+
+    def __init__(self, tpl, scan, options, threshold):
+        self.tpl, self.scan, self.options, self.threshold = tpl, scan, options, threshold
+        self.V = tpl.skin.verts
+        self.tris = tpl.skin.tris
+        self.vert_w = tpl.region_weights[tpl.region]
+        self.face_w = face_weights(tpl)
+        self.seam = lip_seam(tpl)
+        self.near_seam = cKDTree(self.V[self.seam]).query(self.V, distance_upper_bound=options.seam_band)[0] < np.inf
+        self.functions = []
+        self.folds = geometry.FoldCheck(self.V, self.tris)
+        adjacency = geometry.neighbour_mean(self.tris, len(self.V))
+        self.ring = (adjacency + sparse.identity(len(self.V))).tocsr()   # a vertex and its neighbours
+        self.quiet = np.zeros(len(self.V), bool)     # vertices a level leaves to its smoothness term
+        # the global affine map is fitted to these regions (a scan's neck is cut and posed anyhow)
+        self.affine_mask = ~np.isin(tpl.region, [tpl.region_names.index(r) for r in options.affine_skip])
+        self._at_skin = {}
+        self._bases = {}
+        self.warm = {}              # last coefficients per support: the next ICP round starts there
+        self.factor = {}            # a sparse LU per support, once a level's system needed one
+        # umbrella Laplacian of the skin (x_i minus its neighbours' mean) for the smoothness term
+        self.laplacian = (sparse.identity(len(self.V), format="csr") - geometry.neighbour_mean(self.tris, len(self.V))).tocsr()
+
+    def distance_error(self, verts, exact=False):
+        """metrics.DistanceError of skin positions (n,3) against the scan (sec 5.1): nearest points
+        by the scan's tangent planes while fitting (exact=False), exact closest points to report."""
+        normals = geometry.vertex_normals(verts, self.tris)
+        if exact:
+            return metrics.distance_error(verts, normals, self.scan.query, self.scan.face_normals, self.vert_w,
+                                          self.threshold, self.scan.boundary_faces)
+        _, n, d, border = self.scan.nearest_on_plane(verts)
+        matched = (d <= self.threshold) & (np.einsum("ij,ij->i", normals, n) > 0) & ~border
+        w = np.where(matched, self.vert_w, 0.0)
+        return metrics.DistanceError(float(np.sum(w * d ** 2) / len(verts)), d, w, matched)
+
+    def level_basis(self, sigma):
+        """(centres, their kd-tree, the umbrella Laplacian of their Wendland functions on the skin,
+        its Gram matrix) of a level with support sigma, built once per support."""
+        if sigma not in self._bases:
+            centres = self.V[spread(self.V, sigma / self.options.centre_density)]
+            tree = cKDTree(centres)
+            res = cKDTree(self.V).sparse_distance_matrix(tree, sigma, output_type="ndarray")
+            phi = sparse.csr_matrix((rbf.wendland(res["v"], sigma), (res["i"], res["j"])),
+                                    shape=(len(self.V), len(centres)))
+            bend = (self.laplacian @ phi).tocsr()
+            self._bases[sigma] = (centres, tree, bend, (bend.T @ bend).tocsc())
+        return self._bases[sigma]
+
+    def reach(self, k):
+        """How far a closest-point pair may reach at level k (halving per level), m."""
+        return max(self.options.reach_factor * self.threshold / 2 ** (k - 1), self.options.min_reach)
+
+    def displacement(self, x, functions=None):
+        fs = self.functions if functions is None else functions
+        return sum((f(x) for f in fs), np.zeros_like(np.asarray(x, dtype=np.float64)))
+
+    def current(self):
+        """The deformed skin now (n,3); each level function is evaluated on the skin once."""
+        for f in self.functions:
+            if id(f) not in self._at_skin:
+                self._at_skin[id(f)] = (f, f(self.V))
+        return self.V + sum((self._at_skin[id(f)][1] for f in self.functions), np.zeros_like(self.V))
+
+    def at(self, pairs):
+        """The deformed template at the pairs' template points (the skin's vertices looked up)."""
+        cur = self.current()
+        out = np.empty_like(pairs.p)
+        on = pairs.vertex >= 0
+        out[on] = cur[pairs.vertex[on]]
+        out[~on] = pairs.p[~on] + self.displacement(pairs.p[~on])
+        return out
+
+
+def lip_seam(tpl):
+    """Skin vertex indices along the inner-lip seam (upper and lower lip vertices next to the mouth interior)."""
+    q, region = tpl.skin.quads, tpl.region
+    inside = region == tpl.region_names.index("mouth_interior")
+    e = np.concatenate([q[:, [0, 1]], q[:, [1, 2]], q[:, [2, 3]], q[:, [3, 0]]])
+    rim = np.zeros(len(region), bool)
+    rim[e[inside[e[:, 0]] ^ inside[e[:, 1]]].ravel()] = True
+    lips = np.isin(region, [tpl.region_names.index("upper_lip"), tpl.region_names.index("lower_lip")])
+    return np.flatnonzero(rim & lips)
+
+
+def near_boundary(scan):
+    """Scan vertices on or next to a boundary (their curvature is not trusted, paper sec 4.1)."""
+    mask = np.zeros(len(scan.verts), bool)
+    mask[scan.tris[scan.boundary_faces].ravel()] = True
+    return mask
+
+
+def spread(points, radius):
+    """Indices of a greedy subset of points (in the given priority order) at least radius apart.
+
+    Exact greedy on a grid: points are bucketed in cells of side radius; the Python loop runs
+    over occupied cells' candidates only where two candidates could conflict.
+    """
+    if len(points) == 0:
+        return np.zeros(0, int)
+    points = np.asarray(points)
+    # first pass (vectorised): the first point of each cell of side radius/sqrt(3) is taken for sure
+    # if no earlier-taken point can be within radius -- resolved by the exact greedy below on few points
+    tree = cKDTree(points)
+    pairs = tree.query_pairs(radius, output_type="ndarray")
+    if len(pairs) == 0:
+        return np.arange(len(points))
+    # conflicts: for each point, its earlier neighbours
+    lo, hi = np.minimum(pairs[:, 0], pairs[:, 1]), np.maximum(pairs[:, 0], pairs[:, 1])
+    order = np.argsort(hi, kind="stable")
+    lo, hi = lo[order], hi[order]
+    starts = np.searchsorted(hi, np.arange(len(points)))
+    ends = np.searchsorted(hi, np.arange(len(points)), side="right")
+    taken = np.zeros(len(points), bool)
+    has_earlier = ends > starts
+    taken[~has_earlier] = True           # no earlier neighbour: always taken
+    for i in np.flatnonzero(has_earlier):  # only points with earlier neighbours need the greedy test
+        taken[i] = not taken[lo[starts[i]:ends[i]]].any()
+    return np.flatnonzero(taken)

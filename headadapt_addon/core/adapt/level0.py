@@ -1,0 +1,77 @@
+"""Level 0 (paper sec 3.2): the global map that takes the template onto the clicks (and, in
+HeadAdapt, onto the scan's whole surface by an affine ICP), and the feature mesh over the clicks."""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial import Delaunay
+
+from . import rbf
+from .fit import Pairs
+from .pairs import surface_pairs
+
+
+def global_rbf(P, Q, rho=0.0):
+    """Level 0 (sec 3.2): the global RBF phi(r) = r with an affine part and smoothing rho, taking the
+    template's FDPs P (m,3) onto the clicked ones Q (m,3); returns the displacement function."""
+    return rbf.fit_rbf(P, Q - P, rho=rho)
+
+
+class AffineMap:
+    """The displacement x -> (M x + t) - x of an affine map (a level-0 function like the others)."""
+
+    def __init__(self, matrix, shift):
+        self.matrix, self.shift = matrix, shift
+
+    def __call__(self, x):
+        x = np.atleast_2d(np.asarray(x, dtype=np.float64))
+        return x @ (self.matrix - np.eye(3)).T + self.shift
+
+
+def global_affine(fit, clicks, reach, iterations, ridge=1e-3):
+    """Level 0, first half: the affine map that best takes the whole template skin onto the scan
+    (closest points, robust weights) and the clicks onto their places, by a few ICP rounds from the
+    calibrated pose. The clicks sit on the front of the face and cannot say how deep or wide the
+    head is; the scan can. The map's linear part is held near the identity by a small ridge."""
+    centre = fit.V.mean(axis=0)
+    fit.functions = [AffineMap(np.eye(3), np.zeros(3))]
+    for _ in range(iterations):
+        pairs = surface_pairs(fit, reach, mask=fit.affine_mask) + clicks
+        X = np.c_[pairs.p - centre, np.ones(len(pairs))]
+        XtW = X.T * pairs.w
+        reg = ridge * pairs.w.sum() * np.diag([np.mean((fit.V - centre) ** 2)] * 3 + [0.0])
+        D = np.linalg.solve(XtW @ X + reg, XtW @ (pairs.q - pairs.p))     # displacement, affine in x
+        matrix = np.eye(3) + D[:3].T
+        fit.functions = [AffineMap(matrix, D[3] - D[:3].T @ centre)]
+    return fit.functions[0]
+
+
+def level_zero(fit, clicks):
+    """Level 0 (sec 3.2): the whole-skin affine map fitted to the scan and the clicks (global_affine),
+    or, when that is switched off, the paper's global RBF through the clicks."""
+    o = fit.options
+    if o.affine_iterations < 0:
+        fit.functions = [AffineMap(np.eye(3), np.zeros(3))]
+    elif o.affine_iterations:
+        global_affine(fit, Pairs(clicks.p, clicks.q, clicks.w * o.click_weight),
+                      o.reach_factor * fit.threshold, o.affine_iterations, o.affine_ridge)
+    else:
+        fit.functions = [global_rbf(clicks.p, clicks.q, o.rho)]
+
+
+def feature_mesh(points, centre):
+    """Triangles (k,3) over FDP positions (template frame): Delaunay on a cylinder around the head's
+    vertical axis through `centre` (the head's, not the points': a few clicks on the face are all in
+    front of it)."""
+    p = np.asarray(points)
+    c = np.asarray(centre)
+    angle = np.arctan2(p[:, 0] - c[0], -(p[:, 1] - c[1]))
+    radius = np.median(np.linalg.norm(p[:, :2] - c[:2], axis=1))
+    uv = np.c_[angle * radius, p[:, 2]]
+    tris = Delaunay(uv).simplices
+    edges = np.linalg.norm(p[tris] - p[np.roll(tris, 1, axis=1)], axis=2)
+    keep = edges.max(axis=1) < 0.45 * radius * 2
+    # drop slivers along the convex hull of the parameter domain
+    area = 0.5 * np.linalg.norm(np.cross(p[tris[:, 1]] - p[tris[:, 0]], p[tris[:, 2]] - p[tris[:, 0]]), axis=1)
+    keep &= area > 1e-3 * edges.max(axis=1) ** 2
+    return tris[keep]

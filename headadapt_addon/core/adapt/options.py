@@ -1,0 +1,141 @@
+"""What an adaptation takes and gives: its options (every tuned constant, with its reason), the
+report of one level, and the result (paper sec 5: E_d, E_m, E per level)."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from ..tol import MM
+from . import calibration
+
+
+SCANNER_VISIBLE_PARTS = ("skin", "eye_l", "eye_r")
+
+
+# the face: what the outcome judges the fit by (hair, a crown or a collar may cover scalp and neck)
+FACE_REGIONS = ("forehead", "brow_l", "brow_r", "eyelid_l", "eyelid_r", "nose", "cheek_l", "cheek_r",
+                "upper_lip", "lower_lip", "chin_jaw")
+
+
+@dataclasses.dataclass(frozen=True)
+class AdaptOptions:
+    """Settings of one adaptation run (lengths in metres of the template frame)."""
+    max_levels: int = 4                 # levels after level 0
+    rho: float = 0.0                    # level-0 smoothing (eq 9), m
+    support: float | None = None        # fixed CSRBF support sigma (m); default: support_factor x spacing
+    calibration: str = "auto"           # "paper", "umeyama" or "auto"
+    drop_flagged: bool = True           # drop FDPs confirmed as wrongly clicked and refit level 0
+    confirm_mm: float = 10.0            # a click this far from where a coarse fit to the surface and the
+                                        # other clicks puts its FDP is wrong, mm (people disagree by ~3 mm,
+                                        # a coarse fit errs by ~5; a slip of the hand is 20)
+    confirm_factor: float = 3.0         # ... or this x the clicks' median distance there, if larger
+    off_surface_mm: float = 12.0        # an FDP farther than this from the scan surface is an error
+    curvature_points: int = 150         # scan curvature points at level 1 (doubles per level)
+    sample_spacing: float = 0.016       # spacing of the CSRBF centres at level 1 (halves per level), m
+    min_sample_spacing: float = 0.002   # finest centre spacing, m
+    support_factor: float = 3.0         # CSRBF support = this x the level's spacing
+    centre_density: float = 3.0         # a level's CSRBF centres lie its support / this apart
+    reach_factor: float = 1.0           # closest-point pairs are kept within this x width/10 at level 1 (halving)
+    min_reach: float = 0.002            # closest-point pairs are kept within threshold/2^(k-1), at least this, m
+    use_feature_mesh: bool = True       # pairs from feature-mesh subdivision (sec 4.1, Kahler et al.)
+    use_curvature: bool = True          # pairs from the scan's mean-curvature search (sec 4.1, appendix)
+    curvature_reach: float = 0.004      # farthest a curvature point may be from the template, m
+    feature_weight: float = 1.0         # weight of a feature-mesh pair (a surface pair weighs 1)
+    curvature_weight: float = 1.0       # weight of a curvature pair
+    affine_iterations: int = 8          # ICP rounds of the whole-skin affine map before the clicks' RBF
+    affine_skip: tuple = ()             # regions the affine map does not fit
+    affine_ridge: float = 1e-3          # how firmly the affine map's linear part is held to the identity
+    rays_from_level: int = 2            # from this level on, pairs along the template's normal (sec 4.1)
+    fold_rounds: int = 2                # refits of a level without pairs around the triangles it folded
+    icp_iterations: int = 3             # closest-point pairing and refit rounds per level
+    stiffness: float = 10.0             # smoothness of a level: ridge on its CSRBF coefficients, relative
+                                        # to the data weight a centre carries (nricp's stiffness, in effect)
+    stiffness_decay: float = 0.2        # the stiffness per level falls by this factor
+    min_stiffness: float = 0.0          # down to this
+    robust_scale: float = 0.5           # Cauchy weight scale of a surface pair, x the level's reach
+    click_weight: float = 20.0          # a click weighs as much as this many surface pairs at level 1
+    click_decay: float = 0.25           # and this factor less at each finer level (evidence, not law)
+    seam_band: float = 0.004            # no pairs within this of the inner-lip seam (template frame), m
+    alpha: float = 1.0                  # weight of E_d in E (eq 24)
+    beta: float = 0.01                  # weight of E_m in E (E_m sums over markers, E_d averages)
+    stop_at_minimum: bool = True        # stop when E rises (sec 5.3)
+    anatomy_support: float = 0.024      # bone, eyes and pivots follow the levels of at least this support, m
+    bad_fit_rms_mm: float = 1.5         # seen-skin distance RMS above this is a failed fit: 3x the
+                                        # noise of a range scanner (0.1-0.5 mm), mm
+    dense_spacing: float = 0.002        # a scan whose median edge is shorter is paired by its vertices'
+                                        # tangent planes (off by under 0.05 mm there), not closest points, m
+    jacobi_steps: int = 250             # a level's solve factorises (sparse LU) after this many diagonal-
+                                        # preconditioned CG steps (face-only scans need ~800)
+    lu_steps: int = 30                  # ... and refactorises when CG preconditioned by that LU takes more
+    solve_rtol: float = 1e-5            # relative residual of a level's solve
+    backend: str = "bvh"                # spatial queries: "bvh" (Blender's mathutils BVH: in Blender or beside
+                                        # the bpy module) or "numpy" (exact scipy kd-trees, no Blender needed;
+                                        # same answers but up to tie-breaks, 6x slower on a 31k-vertex scan)
+
+
+@dataclasses.dataclass
+class Level:
+    """The report of one level: pairs used, errors (mm^2 as in the paper, RMS mm), seconds."""
+    level: int
+    method: str
+    pairs: int
+    new_pairs: int
+    E_d: float
+    E_d_rms_mm: float
+    E_m: float | None
+    E: float
+    coverage: float
+    seconds: float
+    support_mm: float | None = None
+
+
+@dataclasses.dataclass
+class AdaptResult:
+    """The adapted skin and everything needed to carry anatomy along (template frame unless named)."""
+    verts: np.ndarray                 # (n,3) adapted skin, template frame, metres
+    verts_scan: np.ndarray            # (n,3) adapted skin in the scan's frame and unit
+    similarity: calibration.Similarity  # scan frame -> template frame
+    levels: list
+    best_level: int
+    functions: list                   # level functions, each x (template) -> displacement
+    flagged: dict                     # FDP id -> reason
+    dropped: list
+    calibration_info: dict
+    seconds: float
+    distances: np.ndarray             # (n,) distance of each adapted skin vertex to the scan, m (nan: no match)
+    scan: object = None               # the calibrated scan (template frame) with its queries
+    unfolded: dict = None             # folded triangles after the fit, vertices relaxed, folds left
+    outcome: dict = None              # how it ended: folds left, seen-skin RMS, marker RMS, warnings, ok
+    anatomy_support: float = 0.0      # map_points uses the levels with at least this support, m
+    backend: str = "numpy"            # the spatial backend of the fit (AdaptOptions.backend), for the transfer
+
+    def map_points(self, points):
+        """Carry template-frame points (k,3) inside the head (bone, eyes, pivots) through the
+        adaptation map (template frame): the levels whose support reaches under the skin
+        (AdaptOptions.anatomy_support); the finer ones shape the skin's surface only, and would
+        bend bone a few millimetres under it (anatomy.keep_inside keeps the bone under the skin)."""
+        points = np.asarray(points, dtype=np.float64)
+        return points + sum(f(points) for f in self.functions
+                            if getattr(f, "sigma", np.inf) >= self.anatomy_support)
+
+    def to_scan(self, points):
+        """Template-frame points (k,3) into the scan's frame and unit."""
+        return self.similarity.inverse().apply(points)
+
+    def report(self):
+        """A JSON-ready dict: per level pairs/E_d/E_m/E/seconds, totals, flagged FDPs."""
+        return {
+            "levels": [dataclasses.asdict(lv) for lv in self.levels],
+            "best_level": self.best_level,
+            "stopped_because": ("E reached its minimum at level %d" % self.best_level
+                                if self.best_level < self.levels[-1].level else "last level reached"),
+            "seconds": self.seconds,
+            "calibration": self.calibration_info,
+            "flagged_fdps": self.flagged,
+            "dropped_fdps": self.dropped,
+            "unfolded": self.unfolded,
+            "outcome": self.outcome,
+            "units": "E_d, E_m, E in mm^2 of the template frame (paper eq 22-24); *_mm in mm",
+        }

@@ -1,0 +1,99 @@
+"""Feature-point pairs of a level (paper sec 4.1): by feature-mesh subdivision, by the scan's
+mean curvature inside the face box, and (HeadAdapt) the seen template vertices with the scan."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..mesh import geometry, spatial
+from .fit import Pairs, near_boundary, spread
+
+
+def feature_mesh_pairs(fit, mesh, reach):
+    """Pairs from feature-mesh subdivision (sec 4.1, Kahler et al.): the deformed template and the scan
+    share the feature mesh (its vertices are FP pairs), so one ray from each live triangle's
+    barycentre along its normal meets both surfaces: a new pair, and the triangle splits in three.
+    `mesh` is (fm_q scan-side vertices, fm_t triangles, dead mask) and is updated in place."""
+    fm_q, fm_t, dead = mesh["q"], mesh["t"], mesh["dead"]
+    live = np.flatnonzero(~dead)
+    if not len(live):
+        return Pairs.empty()
+    cur = fit.current()
+    cur_query = spatial.MeshQuery(cur, fit.tris, backend=fit.options.backend)
+    cur_n = geometry.face_normals(cur, fit.tris)
+    tri = fm_t[live]
+    bq = fm_q[tri].mean(axis=1)
+    nq = geometry.face_normals(fm_q, tri)
+    size = np.linalg.norm(fm_q[tri] - bq[:, None], axis=2).max(axis=1)
+    lim = np.minimum(0.5 * size, reach)
+    ht = cur_query.ray_cast(bq, nq, lim)
+    hs = fit.scan.query.ray_cast(bq, nq, lim)
+    ft, fs = np.where(ht.hit, ht.face, 0), np.where(hs.hit, hs.face, 0)
+    ok = ht.hit & hs.hit & (fit.face_w[ft] > 0) & ~fit.scan.boundary_faces[fs]
+    ok &= np.einsum("ij,ij->i", cur_n[ft], fit.scan.face_normals[fs]) > 0.5
+    dead[live[~ok]] = True
+    acc = live[ok]
+    if not len(acc):
+        return Pairs.empty()
+    tp = np.einsum("ij,ijk->ik", ht.bary[ok], fit.V[fit.tris[ft[ok]]])
+    base = len(fm_q)
+    idx = base + np.arange(len(acc))
+    a, b, c = fm_t[acc, 0], fm_t[acc, 1], fm_t[acc, 2]
+    fm_t[acc] = np.c_[a, b, idx]
+    mesh["q"] = np.vstack([fm_q, hs.point[ok]])
+    mesh["t"] = np.vstack([fm_t, np.c_[b, c, idx], np.c_[c, a, idx]])
+    mesh["dead"] = np.concatenate([dead, np.zeros(2 * len(acc), bool)])
+    return Pairs(tp, hs.point[ok], np.full(len(tp), fit.options.feature_weight))
+
+
+def curvature_pairs(fit, box, count, reach, spacing):
+    """Pairs from the scan's mean-curvature extremes (sec 4.1, appendix: Meyer et al.) inside the
+    paper's face box, `spacing` apart, matched to the current template by rays along the scan normal."""
+    scan = fit.scan
+    H, valid = scan.curvature(box)
+    cand = np.flatnonzero(valid & ~near_boundary(scan) & box)
+    if not len(cand):
+        return Pairs.empty()
+    order = cand[np.argsort(-np.abs(H[cand]))]
+    src = order[spread(scan.verts[order[: count * 6]], spacing)[:count]]
+    cur = fit.current()
+    hit = spatial.MeshQuery(cur, fit.tris, backend=fit.options.backend).ray_cast(scan.verts[src], scan.vertex_normals[src], reach)
+    f = np.where(hit.hit, hit.face, 0)
+    ok = hit.hit & (fit.face_w[f] > 0)
+    ok &= np.einsum("ij,ij->i", geometry.face_normals(cur, fit.tris)[f], scan.vertex_normals[src]) > 0.7
+    tp = np.einsum("ij,ijk->ik", hit.bary[ok], fit.V[fit.tris[f[ok]]])
+    return Pairs(tp, scan.verts[src[ok]], np.full(len(tp), fit.options.curvature_weight))
+
+
+def surface_pairs(fit, reach, along_normal=False, mask=None):
+    """Pairs of the seen template vertices with the scan, kept when within `reach`, the normals agree
+    within 60 degrees and the point is not on a hole's border, weighted by region and by a robust
+    (Cauchy) weight on the distance. Coarse levels take the closest point (non-rigid ICP: the
+    template slides until its shapes meet the scan's); fine levels cast along the template's normal
+    (the paper's rays: no sideways pull, so nothing folds where the scan lacks the template's detail)."""
+    cur = fit.current()
+    normals = geometry.vertex_normals(cur, fit.tris)
+    use = np.flatnonzero((fit.vert_w > 0) & ~fit.near_seam & ~fit.quiet & (True if mask is None else mask))
+    if along_normal:
+        hit = fit.scan.query.ray_cast(cur[use], normals[use], reach)
+        f = np.where(hit.hit, hit.face, 0)
+        q, n, d, border = np.nan_to_num(hit.point), fit.scan.face_normals[f], np.abs(np.nan_to_num(hit.t, nan=np.inf)), \
+            fit.scan.boundary_faces[f] | ~hit.hit
+    else:
+        q, n, d, border = fit.scan.nearest_on_plane(cur[use])
+    ok = (d < reach) & ~border & (np.einsum("ij,ij->i", normals[use], n) > 0.5)
+    w = fit.vert_w[use] / (1.0 + (np.minimum(d, reach) / (fit.options.robust_scale * reach)) ** 2)
+    return Pairs(fit.V[use[ok]], q[ok], w[ok], use[ok])
+
+
+def face_box(scan, q_fdp):
+    """The paper's box for the curvature search: eye to eye across (outer corners), from one and a half
+    eye-to-mouth heights above the eyes down to the lowest FDP (the whole scan without eye corners)."""
+    if not ("3.7" in q_fdp and "3.12" in q_fdp):
+        return np.ones(len(scan.verts), bool)
+    lo_x, hi_x = sorted((q_fdp["3.12"][0], q_fdp["3.7"][0]))
+    eyes = 0.5 * (q_fdp["3.7"][2] + q_fdp["3.12"][2])
+    low = min(p[2] for p in q_fdp.values())
+    top = q_fdp["11.1"][2] if "11.1" in q_fdp else eyes + 1.5 * (eyes - low)
+    z = scan.verts[:, 2]
+    return (scan.verts[:, 0] > lo_x) & (scan.verts[:, 0] < hi_x) & (z < top) & (z > low - 0.01)
