@@ -36,7 +36,7 @@ def _deform(x):
 @pytest.fixture(scope="module")
 def case(tpl):
     """(scan verts, scan tris, true skin (n,3), clicks of CLICKS_11 on the scan, exact)."""
-    hidden = np.isin(tpl.region, [tpl.region_names.index(r) for r in ("mouth_interior", "eye_socket_l", "eye_socket_r")])
+    hidden = tpl.hidden
     tris = tpl.skin.tris[~hidden[tpl.skin.tris].any(axis=1)]
     truth = _deform(tpl.skin.verts)
     fdps = tpl.fdp_points()
@@ -56,7 +56,7 @@ def _fit(tpl, case, **kw):
 
 
 def _face(tpl):
-    return np.isin(tpl.region, [tpl.region_names.index(r) for r in FACE_REGIONS])
+    return tpl.region_mask(*FACE_REGIONS)
 
 
 def _corr_mm(tpl, verts, truth):

@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from headadapt_addon.core import anatomy
-from headadapt_addon.core.skin import bake, drive, model as physics
+from headadapt_addon.core.skin import bake, drive
+from headadapt_addon.core.skin.build import build as build_skin
 from headadapt_addon.core.mesh.inside import winding_numbers
 from headadapt_addon.core.template import load_template
 
@@ -18,7 +19,7 @@ def tpl():
 
 @pytest.fixture(scope="module")
 def model(tpl):
-    return physics.build(tpl)
+    return build_skin(tpl)
 
 
 @pytest.fixture(scope="module", params=[7, 3, 11])
@@ -37,7 +38,7 @@ def adapted(tpl, request):
 
 
 def _visible(tpl):
-    return ~np.isin(tpl.region, [tpl.region_names.index(r) for r in physics.HIDDEN_REGIONS])
+    return ~tpl.hidden
 
 
 def _check_keys(tpl, parts, keys, model):

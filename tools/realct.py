@@ -21,7 +21,6 @@ from headadapt_addon.core import anatomy, meshio  # noqa: E402
 from headadapt_addon.core.mesh.spatial import MeshQuery  # noqa: E402
 
 CLICKS = ROOT / "headless_tests" / "data" / "headsq_ct_fdps.json"
-UNSEEN = ("mouth_interior", "eye_socket_l", "eye_socket_r")
 
 
 @dataclasses.dataclass
@@ -45,7 +44,7 @@ class CTCase:
         """(k,) indices into cranium+mandible of bone points under visible skin the scan covers."""
         tpl = self.tpl
         idx = np.r_[tpl.bone_skin_index["cranium"], tpl.bone_skin_index["mandible"]]
-        unseen = np.isin(tpl.region[idx], [tpl.region_names.index(r) for r in UNSEEN])
+        unseen = tpl.hidden[idx]
         return np.flatnonzero(np.isfinite(self.result.distances[idx]) & ~unseen)
 
     def bone_distance_mm(self, bone):

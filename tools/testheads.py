@@ -66,7 +66,6 @@ from headadapt_addon.core.template import load_template  # noqa: E402
 TARGET_CATEGORIES = ("head", "nose", "mouth", "chin", "cheek", "ears", "eyes", "forehead", "eyebrows", "neck")
 RACES = ("african", "asian", "caucasian")
 # regions the scanner never sees on the template: only for tests and figures (the cut is by rays)
-UNSEEN_REGIONS = ("mouth_interior", "eye_socket_l", "eye_socket_r")
 FACE_REGIONS = ("forehead", "brow_l", "brow_r", "eyelid_l", "eyelid_r", "nose", "cheek_l", "cheek_r",
                 "upper_lip", "lower_lip", "chin_jaw")
 SCANNED_PARTS = ("skin", "eye_l", "eye_r")                  # what the scan's surface is made of
@@ -300,7 +299,7 @@ def _click_offset(rng, normal, along_std, across_std, line=(1.0, 0.0, 0.0)):
 
 
 def _region_mask(tpl, *names):
-    return np.isin(tpl.region, [tpl.region_names.index(r) for r in names])
+    return tpl.region_mask(*names)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -341,7 +340,7 @@ def _legacy_head(seed, *, n_targets=8, subdiv=2, decimate=0.6, holes=2, noise_mm
     skin = true_parts["skin"]
 
     # what the scanner sees: skin without the unseen regions + the front of the eyeballs
-    unseen = _region_mask(tpl, *UNSEEN_REGIONS)
+    unseen = tpl.hidden
     quads = tpl.skin.quads[~unseen[tpl.skin.quads].any(axis=1)]
     used_v = np.unique(quads)
     remap = np.full(len(skin), -1)
@@ -440,7 +439,7 @@ def _place_holes(rng, tpl, skin, seen_v, avoid):
         (f"cheek_{side}", _region_mask(tpl, f"cheek_{side}"), (0.010, 0.015)),
         ("back_of_head", _region_mask(tpl, "scalp") & (skin[:, 1] > centre[1] + 0.02), (0.025, 0.040)),
     ]
-    anywhere = ~_region_mask(tpl, *UNSEEN_REGIONS)
+    anywhere = ~tpl.hidden
     plan += [("small", anywhere, (0.002, 0.006))] * int(rng.integers(1, 5))
     avoid = np.asarray(avoid, float).reshape(-1, 3)
     out = []

@@ -65,17 +65,11 @@ def rigid_from_fdps(part_verts, template_fdps, adapted_fdps, x_pair, y_pair, ref
     return Similarity(scale, rot, c_t - scale * rot @ c_s)      # eq 28: T(x) = s R (x - c_s) + c_t
 
 
-HIDDEN_REGIONS = ("mouth_interior", "eye_socket_l", "eye_socket_r")
 POCKET_REACH = 0.015          # bone points this close to the pockets' skin may end in one, m
 EYE_REACH = 0.010             # an eye's surface is looked for this far beyond the eye, m
 EYE_TOLERANCE = 0.0008        # an eye standing out of the scan by more than this goes back, m
 LID_GAP = 0.001               # an eye pushed back stops this far behind the scanned lid, m
 ORBIT_FULL, ORBIT_FADE = 0.003, 0.020   # the orbit moves with its eye out to these distances beyond it, m
-
-
-def _hidden(tpl):
-    """(n_skin,) mask of the skin that is never seen: the mouth bag, the lids folded behind the eyes."""
-    return np.isin(tpl.region, [tpl.region_names.index(r) for r in HIDDEN_REGIONS])
 
 
 def _pocket_tris(tpl, hidden):
@@ -96,7 +90,7 @@ def keep_inside(tpl, bone_template, bone_mapped, skin_adapted, clearance=0.0015,
     from .mesh.geometry import face_normals
     from .mesh.spatial import MeshQuery, barycentric
 
-    hidden = _hidden(tpl)
+    hidden = tpl.hidden
     faces = tpl.skin.tris[~hidden[tpl.skin.tris].any(axis=1)]
     near, face, depth0 = MeshQuery(tpl.skin.verts, faces, backend).closest_points(bone_template)
     clearance = np.minimum(clearance, 0.8 * depth0)      # never deeper than the template itself had it
@@ -158,7 +152,7 @@ def clear_visible_skin(tpl, skin, cranium, mandible, limit=0.48, radius=0.008, s
     n_cr = len(cranium)
     bone = np.vstack([cranium, mandible]).astype(np.float64)
     tris = tpl.skull_tris
-    hidden = _hidden(tpl)
+    hidden = tpl.hidden
     visible = np.flatnonzero(~hidden)
     normals = vertex_normals(skin, tpl.skin.tris)
     # each bone vertex deepens along the skin normal of the skin vertex it was offset from
@@ -205,7 +199,7 @@ def _unrelax_under_skin(tpl, parts, pressed, radius=0.008):
     bone within `radius` of it takes back its pressed, unrelaxed place and is cleared again."""
     n_cr = len(parts["cranium"])
     bone = np.vstack([parts["cranium"], parts["mandible"]])
-    visible = np.flatnonzero(~_hidden(tpl))
+    visible = np.flatnonzero(~tpl.hidden)
     bad = visible[winding_numbers(parts["skin"][visible], bone, tpl.skull_tris) > 0.5]
     if not len(bad):
         return parts["cranium"], parts["mandible"]
@@ -249,7 +243,7 @@ def seat_orbits(tpl, scan, parts, rigid, mapped):
     offsets = {b: np.zeros_like(p) for b, p in mapped.items()}
     if scan is None:
         return skin, offsets
-    socket = np.isin(tpl.region, [tpl.region_names.index(r) for r in ("eye_socket_l", "eye_socket_r")])
+    socket = tpl.region_mask("eye_socket_l", "eye_socket_r")
     for eye in ("eye_l", "eye_r"):
         sim = rigid[eye]
         centre = parts[eye].mean(axis=0)

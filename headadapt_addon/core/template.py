@@ -5,6 +5,7 @@ Format: assets/template/README.md. Never imports bpy.
 """
 
 import dataclasses
+import functools
 import hashlib
 import json
 import pathlib
@@ -16,6 +17,8 @@ from .exceptions import FileFormatError
 TEMPLATE_DIR = pathlib.Path(__file__).resolve().parents[2] / "assets" / "template"
 RIGID_PARTS = ("eye_l", "eye_r", "teeth_upper", "teeth_lower", "tongue")
 BONES = ("cranium", "mandible")
+# skin no range scanner sees: the mouth bag and the eye sockets' lining (a scan never has it)
+HIDDEN_REGIONS = ("mouth_interior", "eye_socket_l", "eye_socket_r")
 
 
 def quads_to_tris(quads):
@@ -44,9 +47,9 @@ class PartMesh:
     quads: np.ndarray
     hm08: np.ndarray
 
-    @property
+    @functools.cached_property
     def tris(self):
-        """Triangles (2k,3) of the quads, in the order face indices refer to."""
+        """Triangles (2k,3) of the quads, in the order face indices refer to (computed once)."""
         return quads_to_tris(self.quads)
 
 
@@ -93,9 +96,14 @@ class Template:
         """{marker name: (3,) point} of the held-out markers, metres."""
         return {k: self.surface_point(r) for k, r in self.meta["markers"].items()}
 
-    def region_mask(self, name):
-        """Boolean mask of the skin vertices in a region."""
-        return self.region == self.region_names.index(name)
+    def region_mask(self, *names):
+        """Boolean mask (n_skin,) of the skin vertices in any of the named regions."""
+        return np.isin(self.region, [self.region_names.index(r) for r in names])
+
+    @functools.cached_property
+    def hidden(self):
+        """Boolean mask (n_skin,) of the skin no scanner sees (HIDDEN_REGIONS)."""
+        return self.region_mask(*HIDDEN_REGIONS)
 
 
 def load_template(directory=None):

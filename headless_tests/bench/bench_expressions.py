@@ -20,7 +20,8 @@ from scipy.sparse.linalg import spsolve
 ROOT = pathlib.Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
 
-from headadapt_addon.core.skin import bake, drive, model as physics  # noqa: E402
+from headadapt_addon.core.skin import bake, drive
+from headadapt_addon.core.skin.build import build as build_skin  # noqa: E402
 from headadapt_addon.core.template import load_template  # noqa: E402
 from tools import faceunits  # noqa: E402
 
@@ -30,7 +31,7 @@ BASIS_ACTIVATION = 0.5     # fields sampled at half activation (the fit scales t
 def fit_units(tpl, model, refs):
     """{unit: (cosine, rms_m, ref_max_m, activations)} of the least-squares fit of each unit."""
     v0 = tpl.skin.verts
-    vis = ~np.isin(tpl.region, [tpl.region_names.index(r) for r in physics.HIDDEN_REGIONS])
+    vis = ~tpl.hidden
     cache, out = {}, {}
     for unit, controls in drive.ARKIT_CONTROLS.items():
         for c in controls:
@@ -52,7 +53,7 @@ def main():
     tpl = load_template()
     refs = faceunits.load_faceunits(tpl, drive.ARKIT_CONTROLS)
     t0 = time.perf_counter()
-    model = physics.build(tpl)
+    model = build_skin(tpl)
     build_s = time.perf_counter() - t0
     print(f"template skin: {len(tpl.skin.verts)} vertices x 3 layers; model build {build_s:.2f} s\n")
     print(f"{'ARKit unit':18s} {'cosine':>7s} {'RMS mm':>7s} {'max mm':>7s}  fitted activations")

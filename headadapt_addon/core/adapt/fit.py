@@ -99,7 +99,7 @@ class Fit:
         self.ring = (adjacency + sparse.identity(len(self.V))).tocsr()   # a vertex and its neighbours
         self.quiet = np.zeros(len(self.V), bool)     # vertices a level leaves to its smoothness term
         # the global affine map is fitted to these regions (a scan's neck is cut and posed anyhow)
-        self.affine_mask = ~np.isin(tpl.region, [tpl.region_names.index(r) for r in options.affine_skip])
+        self.affine_mask = ~tpl.region_mask(*options.affine_skip)
         self._at_skin = {}
         self._bases = {}
         self.warm = {}              # last coefficients per support: the next ICP round starts there

@@ -7,7 +7,6 @@ import dataclasses
 
 import numpy as np
 
-from ..tol import MM
 from . import calibration
 
 

@@ -95,7 +95,7 @@ def adapt(tpl, scan_verts, scan_tris, scan_fdps, options: AdaptOptions = AdaptOp
     de = fit.distance_error(verts, exact=True)
     best_dist = np.where(de.matched, de.dist, np.nan)
     unfolded = {"folded_triangles": n_folded, "vertices_relaxed": int(moved.sum()), "folded_left": left}
-    face = np.isin(tpl.region, [tpl.region_names.index(r) for r in FACE_REGIONS])
+    face = tpl.region_mask(*FACE_REGIONS)
     outcome = fit_outcome(best_dist, face, left, judge.marker_rms_mm(best_funcs), flagged, options,
                           cal_info["handedness"]["notes"])
     say(1.0, f"done: best level {best}")

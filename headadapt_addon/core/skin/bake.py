@@ -14,7 +14,8 @@ import time
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from . import drive, model as physics
+from . import drive
+from .build import build
 from .. import mpeg4
 from ..anatomy import surface_point
 
@@ -43,7 +44,7 @@ def _fap_units(fap, tpl, parts, moved, fapus):
 def bake(tpl, anatomy=None, kinds=("expression", "viseme", "fap"), progress=None):
     """Baked keys [BakedKey] for the template or an adapted Anatomy, and timings {build_s, per_key_s}."""
     t0 = time.perf_counter()
-    model = physics.build(tpl, anatomy)
+    model = build(tpl, anatomy)
     build_s = time.perf_counter() - t0
     parts = anatomy.parts if anatomy is not None else {k: p.verts for k, p in tpl.parts.items()}
     fapus = anatomy.fapus if anatomy is not None else tpl.meta["fapus"]

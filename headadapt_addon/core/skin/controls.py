@@ -1,0 +1,189 @@
+"""The skin model's controls at activation 1: muscle forces (Waters-style linear muscles and
+sphincters), the cheeks' air pressure and the lips' push, and the lids turning about the eyeball."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..tol import TINY
+
+LID_REACH = 1.7                       # the lid's turn fades to 0 at this many margin radii from the eye axis
+LOWER_LID_SHARE = 0.35                # the lower lid at 1 rises this share of the opening (as in a blink)
+LID_STIFFNESS = 5.0                   # lid skin on its tarsal plate
+MUSCLE_CONE_DEG = 15.0               # Waters' angular fall-off: zero at this angle off the muscle axis
+MUSCLE_BAND = 0.15                    # radial fall-off: zero this fraction of the length from the insertion
+MUSCLE_MIN_REACH = 0.008              # short muscles still spread their pull this far (m)
+PUFF_REGIONS = ("cheek_l", "mouth_interior")
+PUFF_FORWARD = 3.0
+FUNNEL_FORWARD = 1.0
+PUFF_OFFSET, PUFF_RADIUS = 0.5, 0.9  # puff centre beside the lip corner and reach, in mouth widths
+
+# Pull of each control at activation 1 (total force, stiffness units x m; angles in degrees,
+# slides in m). Fitted so that activation 1 is about the amplitude of the matching ARKit face
+# unit of faceunits01 on the template (headless_tests/bench/bench_expressions.py prints the fit).
+STRENGTH = {
+    "frontalis_inner": 0.35, "frontalis_outer": 0.45, "corrugator": 0.4,
+    "levator_labii_superioris": 0.6, "zygomaticus_minor": 0.6, "zygomaticus_major": 1.0,
+    "risorius": 0.6, "depressor_anguli_oris": 0.8, "depressor_labii_inferioris": 0.8,
+    "mentalis": 3.0, "buccinator": 0.6, "nasalis": 0.4,
+    "orbicularis_oris": 0.8, "orbicularis_oculi": 0.6,
+    "cheek_puff": 0.8, "lip_push": 0.5, "lip_funnel": 0.6, "depressor_septi": 1.0,
+}
+
+
+def strength_of(name):
+    """Force scale of a control at activation 1 (muscle family name without _l/_r)."""
+    base = name[:-2] if name.endswith(("_l", "_r")) else name
+    base = base.replace("_upper", "").replace("_lower", "")
+    return STRENGTH.get(base, 0.5)
+
+
+def _fissure_opening(along, phi, upper, lid_skin, mid, half, bins=12):
+    """Per vertex (n,): the angle (rad) between the lid margins in its column of the fissure
+    (`along` the corner line, metres), from the visible lid skin: the upper margin is the most
+    closed upper-lid vertex, the lower margin the most closed lower-lid vertex; 0 at the corners."""
+    edges = np.linspace(mid - half, mid + half, bins + 1)
+    col = np.digitize(along, edges) - 1
+    top, bottom = np.full(bins, -np.inf), np.full(bins, np.inf)
+    ok = np.ones(bins, bool)
+    for side, out, pick in ((upper, top, np.maximum), (~upper, bottom, np.minimum)):
+        m = (col >= 0) & (col < bins) & lid_skin & side
+        pick.at(out, col[m], phi[m])
+        ok &= np.bincount(col[m], minlength=bins) >= 3            # a sparse column has no margin
+    gap = bottom - top
+    centres = 0.5 * (edges[:-1] + edges[1:])
+    gap = np.interp(centres, centres[ok], np.maximum(gap[ok], 0.0))
+    return np.interp(along, np.r_[edges[0], centres, edges[-1]], np.r_[0.0, gap, 0.0])
+
+
+def _mirror_dofs(tpl, idx_l, n):
+    """The right side's dof indices (any layer) of left ones, through hm08.mirror."""
+    layer, v = np.divmod(idx_l, n)
+    return layer * n + tpl.skin_mirror[v]
+
+
+def _mirror_control(tpl, idx_l, vec_l, n):
+    """The right side's force of a left control: vertex through hm08.mirror, x flipped."""
+    return _mirror_dofs(tpl, idx_l, n), vec_l * [-1.0, 1.0, 1.0]
+
+
+def _normalised(idx, direction, weight, strength):
+    keep = weight > 0
+    return idx[keep], direction[keep] * (strength * weight[keep] / max(weight.sum(), TINY))[:, None]
+
+
+def muscle_forces(tpl, rest, normals, n, muscles, sphincters):
+    """Muscle forces on the hypodermis at activation 1: {name: (dof index, force (k,3))}."""
+    hyp = rest[2 * n:]
+    out = {}
+    for mm in muscles:
+        inside = tpl.region_mask(*mm["regions"])
+        a_pt, i_pt = np.asarray(mm["attachment"]), np.asarray(mm["insertion"])
+        below = np.argmin(np.linalg.norm(rest[:n] - i_pt, axis=1))
+        i_pt = i_pt + hyp[below] - rest[below]                       # the insertion on the hypodermis
+        axis = i_pt - a_pt
+        length = np.linalg.norm(axis)
+        rel = hyp - a_pt
+        dist = np.linalg.norm(rel, axis=1)
+        cosang = rel @ axis / np.maximum(dist * length, TINY)
+        cone = np.cos(max(np.radians(MUSCLE_CONE_DEG), np.arctan2(MUSCLE_MIN_REACH, length)))
+        angular = np.clip((cosang - cone) / (1 - cone), 0, 1)
+        radial = np.clip(1 - np.abs(dist - length) / max(MUSCLE_BAND * length, MUSCLE_MIN_REACH), 0, 1)
+        w = angular * radial * inside
+        direction = -rel                                             # toward the attachment, along the skin
+        direction -= np.einsum("ij,ij->i", direction, normals)[:, None] * normals
+        direction /= np.maximum(np.linalg.norm(direction, axis=1, keepdims=True), TINY)
+        out[mm["name"]] = _normalised(np.arange(n) + 2 * n, direction, w, strength_of(mm["name"]))
+    for sph in sphincters:
+        inside = tpl.region_mask(*sph["regions"])
+        centre = np.asarray(sph["centre"])
+        a, b = (np.asarray(x) for x in sph["axes"])
+        rel = hyp - centre
+        u, v = rel @ a / (a @ a), rel @ b / (b @ b)
+        rho = np.sqrt(u ** 2 + v ** 2)
+        w = np.clip(1 - np.abs(rho - 0.8) / 0.6, 0, 1) * inside
+        inward = -(u[:, None] * a + v[:, None] * b)
+        inward /= np.maximum(np.linalg.norm(inward, axis=1, keepdims=True), TINY)
+        out[sph["name"]] = _normalised(np.arange(n) + 2 * n, inward, w, strength_of(sph["name"]))
+    return out
+
+
+def pressure_controls(tpl, skin, normals, fdps, n):
+    """Cheek puff (outward, around 5.1/5.2) and lip push (forward, around 8.1/8.2) on the hypodermis."""
+    out = {}
+    mw = np.linalg.norm(fdps["8.3"] - fdps["8.4"])
+    hyp = np.arange(n) + 2 * n
+    side_l = np.clip(0.5 + skin[:, 0] / 1e-3, 0, 1)          # 1 on the left, 1/2 on the midline
+    cheek = tpl.region_mask(*PUFF_REGIONS)
+    centre = fdps["8.3"] + np.array([PUFF_OFFSET * mw, 0.0, 0.0])      # beside the lip corner
+    d = np.linalg.norm(skin - centre, axis=1)
+    w = np.clip(1 - d / (PUFF_RADIUS * mw), 0, 1) ** 2 * cheek * side_l
+    push = normals + PUFF_FORWARD * np.array([0.0, -1.0, 0.0])        # out, and forward as cheeks round
+    push /= np.linalg.norm(push, axis=1, keepdims=True)
+    idx_l, f_l = _normalised(hyp, push, w, strength_of("cheek_puff"))
+    out["cheek_puff_l"] = idx_l, f_l
+    out["cheek_puff_r"] = _mirror_control(tpl, idx_l, f_l, n)
+    forward = np.tile([0.0, -1.0, 0.0], (n, 1))
+    for name, fdp, region in (("lip_push_upper", "8.1", "upper_lip"), ("lip_push_lower", "8.2", "lower_lip")):
+        near = tpl.region_mask(region, "mouth_interior")
+        d = np.linalg.norm(skin - fdps[fdp], axis=1)
+        w = np.clip(1 - d / (0.6 * mw), 0, 1) * near
+        out[name] = _normalised(hyp, forward, w, strength_of(name))
+    # funnel: the lips flare away from the mouth's centre line and forward (an O-shaped mouth)
+    mouth = 0.5 * (fdps["2.2"] + fdps["2.3"])
+    lips = tpl.region_mask("upper_lip", "lower_lip", "mouth_interior")
+    flare = np.zeros((n, 3))
+    flare[:, 2] = np.sign(skin[:, 2] - mouth[2])
+    flare += FUNNEL_FORWARD * np.array([0.0, -1.0, 0.0])
+    flare /= np.linalg.norm(flare, axis=1, keepdims=True)
+    d = np.linalg.norm((skin - mouth)[:, [0, 2]], axis=1)
+    w = np.clip(1 - d / (0.5 * mw), 0, 1) * lips
+    out["lip_funnel"] = _normalised(hyp, flare, w, strength_of("lip_funnel"))
+    # depressor septi: the nose's base (columella, subnasale) pulled down toward the upper lip
+    d = np.linalg.norm(skin - fdps["9.15"], axis=1)
+    w = np.clip(1 - d / (0.5 * mw), 0, 1) * tpl.region_mask("nose")
+    out["depressor_septi"] = _normalised(hyp, np.tile([0.0, 0.0, -1.0], (n, 1)), w, strength_of("depressor_septi"))
+    return out
+
+
+def lid_controls(tpl, skin, parts, fdps, n):
+    """Lid plates: {control: (dofs, anchor stiffness, eye centre, full close angle rad, weight, axis)}.
+
+    A lid turns about the axis through the eyeball's centre parallel to the line of its corners;
+    the turn fades from the margin (1) to the orbit's rim (0), and along the fissure it is the
+    local opening (the angle between the margins there) over the opening at the middle, so at 1 the
+    margins meet all along and the canthi stay.
+    """
+    out = {}
+    centre = parts["eye_l"].mean(axis=0)
+    outer, inner = fdps["3.7"], fdps["3.11"]
+    axis = (outer - inner) / np.linalg.norm(outer - inner)
+    axis = np.array([axis[0], 0.0, axis[2]]) / np.linalg.norm([axis[0], axis[2]])   # no forward tilt
+    lid = tpl.region_mask("eyelid_l", "eye_socket_l")
+    rel = skin - centre
+    along = rel @ axis
+    flat = rel - np.outer(along, axis)                               # across the axis
+    radial = np.linalg.norm(flat, axis=1)                            # distance from the axis
+    r_margin = np.linalg.norm(fdps["3.1"] - centre)
+    half = 0.5 * np.linalg.norm(outer - inner)
+    mid = 0.5 * ((outer - centre) @ axis + (inner - centre) @ axis)
+    r1, r3 = (fdps[k] - centre for k in ("3.1", "3.3"))
+    r1, r3 = r1 - (r1 @ axis) * axis, r3 - (r3 @ axis) * axis
+    turn = np.sign(np.cross(r1, r3) @ axis)
+    full = abs(float(np.arctan2(np.cross(r1, r3) @ axis, r1 @ r3)))   # margin to margin, about the axis
+    line_z = inner[2] + (along - (inner - centre) @ axis) / (2 * half) * (outer[2] - inner[2])
+    upper = skin[:, 2] > line_z
+    # angle of each vertex from the upper margin's middle toward the lower's, about the axis
+    phi = turn * np.arctan2(np.cross(r1, flat) @ axis, flat @ r1)
+    opening = _fissure_opening(along, phi, upper, tpl.region_mask("eyelid_l"), mid, half) / full
+    w = (np.clip((LID_REACH * r_margin - radial) / ((LID_REACH - 1.0) * r_margin), 0, 1)
+         * np.clip(opening, 0, 1) * lid)
+    for which, mask in (("upper", (w > 0) & upper), ("lower", (w > 0) & ~upper)):
+        v = np.flatnonzero(mask)
+        idx = np.concatenate([v + layer * n for layer in range(3)])
+        wk = np.tile(w[v], 3)
+        angle = full * (1.0 if which == "upper" else LOWER_LID_SHARE)
+        out[f"{which}_lid_l"] = (idx, LID_STIFFNESS * wk, centre, angle, wk, axis)
+        out[f"{which}_lid_r"] = (_mirror_dofs(tpl, idx, n), LID_STIFFNESS * wk, parts["eye_r"].mean(axis=0),
+                                 angle, wk, axis * [1.0, -1.0, -1.0])   # an axis is a pseudovector
+    return out
