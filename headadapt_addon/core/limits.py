@@ -34,7 +34,9 @@ def read_capped(path: os.PathLike | str, max_bytes: int, what: str) -> bytes:
             if size > max_bytes:
                 raise FileFormatError(f"{path}: {size / MB:.1f} MB is over the {max_bytes / MB:.0f} MB "
                                       f"limit for a {what}")
-            data = fh.read(max_bytes + 1)
+            data = bytearray()              # in blocks: read(n) would reserve n bytes before reading
+            while len(data) <= max_bytes and (block := fh.read(min(MB, max_bytes + 1 - len(data)))):
+                data += block
     except FileNotFoundError:
         raise FileFormatError(f"{path}: no such file") from None
     except IsADirectoryError:
@@ -45,7 +47,7 @@ def read_capped(path: os.PathLike | str, max_bytes: int, what: str) -> bytes:
         raise FileFormatError(f"{path}: over the {max_bytes / MB:.0f} MB limit for a {what}")
     if not data:
         raise FileFormatError(f"{path}: the {what} is empty (0 bytes)")
-    return data
+    return bytes(data)
 
 
 def check_count(path: os.PathLike | str, what: str, count: int, limit: int,

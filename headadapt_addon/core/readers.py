@@ -24,8 +24,6 @@ import numpy as np
 from . import limits
 from .exceptions import FileFormatError
 
-SCAN_SUFFIXES = (".obj", ".ply", ".stl")
-
 # A PLY header longer than this is not a header (plyfile reads it one character at a time).
 _PLY_HEADER_MAX_BYTES = 64 * 1024
 # An OBJ face corner whose vertex index is 0 (OBJ counts from 1; trimesh would take it as the last vertex).
