@@ -238,3 +238,14 @@ def test_atomic_write_into_a_file_names_it(tmp_path):
     blocked.write_text("")
     with pytest.raises(FileFormatError, match="cannot write"):
         meshio.write_atomic(blocked / "sub" / "a.obj", "x")
+
+
+@pytest.mark.parametrize("module, name", [("plyfile", "scan.ply"), ("trimesh", "scan.obj")])
+def test_a_missing_reader_library_is_one_error_saying_how_to_get_it(tmp_path, monkeypatch, module, name):
+    """A Blender without the extension (which bundles plyfile and trimesh) running batch.py."""
+    (tmp_path / name).write_bytes(b"ply\nformat ascii 1.0\nend_header\n" if name.endswith("ply") else b"v 0 0 0\n")
+    for loaded in [m for m in sys.modules if m == module or m.startswith(module + ".")]:
+        monkeypatch.delitem(sys.modules, loaded)
+    monkeypatch.setitem(sys.modules, module, None)          # import fails
+    with pytest.raises(FileFormatError, match=f"needs the Python package {module}, missing in this Python"):
+        meshio.read_mesh(tmp_path / name)

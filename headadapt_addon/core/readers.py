@@ -14,10 +14,12 @@ a vertex, counts within limits). Every failure is one FileFormatError that names
 
 from __future__ import annotations
 
+import importlib
 import io
 import os
 import pathlib
 import re
+import types
 
 import numpy as np
 
@@ -41,6 +43,18 @@ def read_scan(path: os.PathLike | str) -> tuple[np.ndarray, np.ndarray]:
         raise FileFormatError(f"{path}: unsupported scan format {suffix!r} (use OBJ, PLY or STL)")
     verts, tris, weld = readers[suffix](path)
     return _checked(path, verts, tris, weld)
+
+
+def _library(module: str, path: pathlib.Path) -> types.ModuleType:
+    """The reader library's module; FileFormatError saying how to get it where this Python lacks it
+    (a Blender without the extension running batch.py)."""
+    try:
+        return importlib.import_module(module)
+    except ImportError:
+        name = module.split(".")[0]
+        raise FileFormatError(f"{path}: reading this scan needs the Python package {name}, missing in this Python "
+                              f"(the HeadAdapt extension bundles it; else pip install {name}, see requirements.txt)"
+                              ) from None
 
 
 # ---------------------------------------------------------------------------------------------
@@ -83,7 +97,7 @@ def _ply_header(path: pathlib.Path, fh: _CappedFile):
     """plyfile's parse of the header alone (the body is not touched), its counts checked against the
     bytes after it: each row needs at least one byte per value (ascii) or its fixed-size values and
     list lengths (binary)."""
-    import plyfile
+    plyfile = _library("plyfile", path)
 
     if b"end_header" not in fh.read(_PLY_HEADER_MAX_BYTES):
         raise FileFormatError(f"{path}: not a PLY file (no 'end_header' in its first "
@@ -106,7 +120,7 @@ def _ply_header(path: pathlib.Path, fh: _CappedFile):
 
 
 def _read_ply(path: pathlib.Path) -> tuple[np.ndarray, np.ndarray, bool]:
-    import plyfile
+    plyfile = _library("plyfile", path)
 
     with _open_ply(path) as fh:
         header = _ply_header(path, fh)
@@ -182,7 +196,7 @@ def _trimesh_parts(loaded: dict) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _read_obj(path: pathlib.Path) -> tuple[np.ndarray, np.ndarray, bool]:
-    from trimesh.exchange.obj import load_obj
+    load_obj = _library("trimesh.exchange.obj", path).load_obj
 
     # Not UTF-8 (a name or comment in another encoding) is no reason to refuse the geometry.
     text = limits.read_capped(path, limits.SCAN_MAX_BYTES, "scan").decode("utf-8", errors="replace")
@@ -205,7 +219,7 @@ def _read_obj(path: pathlib.Path) -> tuple[np.ndarray, np.ndarray, bool]:
 
 
 def _read_stl(path: pathlib.Path) -> tuple[np.ndarray, np.ndarray, bool]:
-    from trimesh.exchange import stl
+    stl = _library("trimesh.exchange.stl", path)
 
     raw = limits.read_capped(path, limits.SCAN_MAX_BYTES, "scan")
     declared = int.from_bytes(raw[80:84], "little") if len(raw) >= 84 else -1
