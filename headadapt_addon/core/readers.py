@@ -2,9 +2,10 @@
 
 Why these libraries: plyfile reads every PLY variant (ascii, both binary byte orders, any property
 types, face lists of mixed length such as Blender's own binary export of quads and triangles);
-trimesh's binary PLY reader cannot read mixed-length lists, but its OBJ and STL readers are sound and
-vectorised. Both are pure Python on numpy and ship as wheels in the extension. Blender's importers
-would put bpy into every batch worker and cannot be bounded per file.
+trimesh's binary PLY reader cannot read mixed-length lists, but its OBJ and STL readers are vectorised
+(its OBJ reader takes a face index 0 as the last vertex: such files are refused before it runs). Both
+are pure Python on numpy and ship as wheels in the extension. Blender's importers would put bpy into
+every batch worker and cannot be bounded per file.
 
 Each file goes through the same steps: its size against the limit before it is read; the counts a
 header declares against the bytes that follow before the parser sizes an array from them; the
