@@ -2,26 +2,41 @@
 ``blender -b --python headadapt_addon/batch.py -- COMMAND ...``.
 
 Commands:
-  adapt --scan SCAN --landmarks L.json|L.pp --out DIR   adapt the template onto one scan
-  folder --folder DIR --out DIR [--jobs N]              adapt every scan + landmarks pair in a folder
-  demo [--out DIR]                                      adapt onto the bundled sample scan
+  adapt --scan SCAN --landmarks L.json|L.pp --out DIR [--blend FILE]   adapt the template onto one scan
+  folder --folder DIR --out DIR [--blend] [--jobs N | --scheduler tcp://HOST:8786]
+                                    adapt every scan + landmarks pair in a folder, each in its own process
+  demo [--out DIR]                  adapt onto the bundled sample scan (replaces an earlier demo's files)
 
 The log states how the fit ended (folds left, distance RMS over the face the scan shows, marker
 error if the landmark file has markers); every warning (a flagged or dropped FDP, swapped labels,
 folds left, a face far from the scan) is a line "headadapt: warning: ..." on stderr and in
-report.json's "outcome".
+report.json's "outcome". Results are written atomically; report.json is written last and says
+"status": "done" only for a finished run, with the sha256 of the inputs it was made from. No output
+may be an input of the run, and existing results are replaced only with --overwrite.
 
-Exit codes: 0 the fit is ok; 2 bad input (one line on stderr names it); 3 the fit finished but is
-not trustworthy (outcome.ok false: folds left or the face far from the scan; the OBJ, report.json
-and .blend are still written). folder: 3 if any scan's fit is not trustworthy and none failed; with
-failures (named in summary.json) 0 if any scan was adapted, 1 if none.
+Exit codes: 0 the fit is ok; 1 internal error (a bug: the traceback is in the log); 2 bad input, an
+input that cannot be read, an output that cannot be written or would replace an input or an earlier
+result (one line on stderr names the file); 3 the fit finished but is not trustworthy (folds left or
+the face far from the scan; its OBJ, report.json and .blend are still written). folder: 4 if any scan
+failed (each named in summary.json), else 3 if any fit is not trustworthy, else 0; 130 when
+interrupted (summary.json lists what did not finish).
 """
 
+from __future__ import annotations
+
 import argparse
+import collections
+import hashlib
 import json
+import os
 import pathlib
+import signal
+import subprocess
 import sys
+import threading
 import time
+import traceback
+import uuid
 
 if __name__ == "__main__" and not __package__:      # run as a script (blender --python batch.py)
     sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
@@ -29,6 +44,8 @@ if __name__ == "__main__" and not __package__:      # run as a script (blender -
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 SAMPLE_DIR = ROOT / "assets" / "sample_scan"
+SCAN_SUFFIXES = (".obj", ".ply", ".stl")
+EXIT_OK, EXIT_BUG, EXIT_BAD_INPUT, EXIT_UNTRUSTWORTHY, EXIT_SCAN_FAILED, EXIT_INTERRUPTED = 0, 1, 2, 3, 4, 130
 
 
 def build_parser():
@@ -43,60 +60,185 @@ def build_parser():
         p.add_argument("--calibration", choices=("auto", "paper", "umeyama"), default="auto")
         p.add_argument("--keep-flagged", action="store_true",
                        help="keep FDPs flagged as wrongly clicked (default: drop them and say so)")
-        p.add_argument("--blend", help="also write a .blend with the result")
+        p.add_argument("--overwrite", action="store_true",
+                       help="replace the results of an earlier run (default: refuse, exit 2)")
 
     a = sub.add_parser("adapt", help="adapt the template onto a scan")
     a.add_argument("--scan", required=True, help="scan mesh: OBJ, PLY or STL (any unit, any pose)")
     a.add_argument("--landmarks", required=True, help='FDPs on the scan: JSON {"points": {"3.7": [x,y,z]}} or MeshLab .pp')
     a.add_argument("--out", required=True, help="output folder (adapted_head.obj, report.json)")
+    a.add_argument("--blend", help="also write a .blend with the result to this file")
     common(a)
-    f = sub.add_parser("folder", help="adapt every scan + landmarks pair in a folder (process pool)")
+    f = sub.add_parser("folder", help="adapt every scan + landmarks pair in a folder, each scan in its own process")
     f.add_argument("--folder", required=True, help="folder of NAME.obj|ply|stl with NAME.json or NAME.pp beside it")
-    f.add_argument("--out", required=True, help="output folder; one sub-folder per scan, plus summary.json")
-    f.add_argument("--jobs", type=int, default=0, help="worker processes (default: the number of cores)")
+    f.add_argument("--out", required=True, help="output folder: one sub-folder per scan, plus summary.json")
+    f.add_argument("--blend", action="store_true", help="also write OUT/NAME/NAME.blend for each scan")
+    f.add_argument("--jobs", type=int, default=0, help="scans at a time (default: the number of cores)")
+    f.add_argument("--timeout", type=float, default=900.0,
+                   help="seconds a scan may take before its process is killed (default 900)")
+    f.add_argument("--memory-gb", type=float, default=8.0,
+                   help="address-space limit of each scan's process, GB (default 8)")
+    f.add_argument("--scheduler", help="run the scans on this Dask distributed scheduler (tcp://HOST:8786) "
+                                       "instead of local processes; OUT must be visible to its workers")
     common(f)
     d = sub.add_parser("demo", help="adapt the bundled template onto the bundled sample scan")
     d.add_argument("--out", default=str(ROOT / "out" / "demo"), help="output folder (default out/demo)")
     common(d)
+    s = sub.add_parser("_scan")                      # one scan of folder mode, in its own process
+    s.add_argument("job", help=argparse.SUPPRESS)
     return parser
 
 
 def _stderr(line):
-    print(line, file=sys.stderr)
+    print(line, file=sys.stderr, flush=True)
+
+
+# ---------------------------------------------------------------------------------------------
+# outputs never destroy inputs
+# ---------------------------------------------------------------------------------------------
+def same_file(a: os.PathLike | str, b: os.PathLike | str) -> bool:
+    """Whether paths a and b name the same file: the same path once resolved (symbolic links, ..), or
+    the same file on disk (hard links)."""
+    a, b = pathlib.Path(a), pathlib.Path(b)
+    if os.path.abspath(a) == os.path.abspath(b) or a.resolve() == b.resolve():
+        return True
+    try:
+        return os.path.samefile(a, b)
+    except OSError:
+        return False
+
+
+def check_outputs(inputs: list[pathlib.Path], outputs: dict[str, pathlib.Path], overwrite: bool) -> None:
+    """FileFormatError (exit 2) if an output is one of the inputs, two outputs are one file, or an output
+    exists and overwrite is false. outputs: {what it is: path}."""
+    from .core.exceptions import FileFormatError
+
+    items = list(outputs.items())
+    for what, out in items:
+        for inp in inputs:
+            if same_file(out, inp):
+                raise FileFormatError(f"refusing to write {out} ({what}): it is {inp}, an input of this run")
+    for i, (what, out) in enumerate(items):
+        for other, path in items[i + 1:]:
+            if same_file(out, path):
+                raise FileFormatError(f"refusing to write {out}: it would be both the {what} and the {other}")
+    if not overwrite:
+        for what, out in items:
+            if out.exists():
+                raise FileFormatError(f"refusing to replace {out} ({what} of an earlier run); "
+                                      "--overwrite replaces it")
+
+
+def remove_results(paths) -> None:
+    """Delete earlier results (missing ones are fine); FileFormatError names one that cannot be deleted."""
+    from .core.exceptions import FileFormatError
+
+    for path in paths:
+        try:
+            pathlib.Path(path).unlink(missing_ok=True)
+        except NotADirectoryError:
+            pass                          # its folder is a file: nothing there to delete
+        except OSError as exc:
+            raise FileFormatError(f"cannot replace {path}: {exc.strerror or exc}") from None
+
+
+def file_sha256(path: os.PathLike | str) -> str:
+    """sha256 of a file's bytes, read in 1 MB blocks."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+# ---------------------------------------------------------------------------------------------
+# one scan
+# ---------------------------------------------------------------------------------------------
+def result_paths(out_dir: os.PathLike | str, blend: os.PathLike | str | None = None) -> dict[str, pathlib.Path]:
+    """{what: path} of everything a run of adapt writes: the adapted OBJ, report.json and the .blend."""
+    out_dir = pathlib.Path(out_dir)
+    paths = {"adapted OBJ": out_dir / "adapted_head.obj", "report": out_dir / "report.json"}
+    if blend:
+        paths["--blend file"] = pathlib.Path(blend)
+    return paths
 
 
 def run_adapt(scan_path, landmarks_path, out_dir, levels=4, calibration="auto", keep_flagged=False,
-              blend=None, log=print, warn=_stderr):
-    """Adapt the template onto one scan file; write adapted_head.obj + report.json (atomic); return the
-    report. Progress goes to log, one line per warning to warn; report["outcome"]["ok"] says whether
-    the fit can be trusted (main: exit code 3 if not)."""
+              blend=None, overwrite=False, run_id=None, log=print, warn=_stderr):
+    """Adapt the template onto one scan file; write adapted_head.obj (+ the .blend) and report.json last,
+    all atomically; return the report. Progress goes to log, one line per warning to warn;
+    report["outcome"]["ok"] says whether the fit can be trusted (main: exit code 3 if not).
+
+    Refuses (FileFormatError) an output that is an input and, unless overwrite, any existing result;
+    with overwrite the earlier results are deleted first. Any failure after that leaves report.json
+    with "status": "failed" and the error (and no result beside it), then raises."""
     from .core import meshio
     from .core.adapt import outcome as outcome_text
-    from .core.adapt.pipeline import AdaptOptions, adapt
-    from .core.template import load_template
+    from .core.exceptions import FileFormatError, HeadAdaptError
 
     t0 = time.perf_counter()
     out_dir = pathlib.Path(out_dir)
+    outputs = result_paths(out_dir, blend)
+    check_outputs([pathlib.Path(scan_path), pathlib.Path(landmarks_path)], outputs, overwrite)
+    remove_results(outputs.values())
+    record = {"status": "running", "run": run_id or uuid.uuid4().hex, "scan": str(scan_path),
+              "landmarks": str(landmarks_path)}
+    try:
+        verts, tris = meshio.read_mesh(scan_path)
+        points = meshio.read_landmarks(landmarks_path)
+        markers = meshio.read_landmarks.last_meta.get("markers")
+        try:
+            record["inputs_sha256"] = {"scan": file_sha256(scan_path), "landmarks": file_sha256(landmarks_path)}
+        except OSError as exc:
+            raise FileFormatError(f"cannot read {exc.filename}: {exc.strerror}") from None
+        meshio.write_atomic(outputs["report"], json.dumps(record, indent=1))
+        report = _adapt_and_write(record, verts, tris, points, markers, outputs, levels, calibration, keep_flagged,
+                                  t0, log, warn)
+    except BaseException as exc:
+        if isinstance(exc, HeadAdaptError):
+            record.update(status="failed", error=str(exc))
+        elif isinstance(exc, KeyboardInterrupt):
+            record.update(status="interrupted", error=f"{scan_path}: interrupted")
+        elif isinstance(exc, MemoryError):
+            record.update(status="failed", error=f"{scan_path}: out of memory")
+        else:
+            record.update(status="failed", error=f"{scan_path}: internal error: {type(exc).__name__}: {exc}",
+                          traceback=traceback.format_exc())
+        if out_dir.is_dir():
+            try:
+                meshio.write_atomic(outputs["report"], json.dumps(record, indent=1))
+            except FileFormatError:
+                pass                      # the original error is the one to report
+        raise
+    log(f"headadapt: best level {report['best_level']}; {outcome_text.verdict(report['outcome'])}")
+    for line in report["warnings"]:
+        warn(f"headadapt: warning: {line}")
+    log(f"headadapt: wrote {', '.join(str(p) for p in outputs.values())} in {report['total_seconds']:.2f} s")
+    return report
+
+
+def _adapt_and_write(record, verts, tris, points, markers, outputs, levels, calibration, keep_flagged, t0, log,
+                     warn):
+    from .core import meshio
+    from .core.adapt import outcome as outcome_text
+    from .core.adapt import AdaptOptions, adapt
+    from .core.template import load_template
+
     tpl = load_template()
-    verts, tris = meshio.read_mesh(scan_path)
-    points = meshio.read_landmarks(landmarks_path)
-    meta = meshio.read_landmarks.last_meta
-    markers = meta.get("markers")
     options = AdaptOptions(max_levels=levels, calibration=calibration, drop_flagged=not keep_flagged)
-    log(f"headadapt: {pathlib.Path(scan_path).name}: {len(verts):,} vertices, {len(tris):,} triangles, "
+    log(f"headadapt: {pathlib.Path(record['scan']).name}: {len(verts):,} vertices, {len(tris):,} triangles, "
         f"{len(points)} FDPs")
     result = adapt(tpl, verts, tris, points, options, markers=markers,
                    progress=lambda f, msg: log(f"  {100 * f:5.1f}%  {msg}"))
     report = {
-        "scan": str(scan_path), "landmarks": str(landmarks_path),
+        **record, "status": "done",
         "template_sha256": tpl.meta["content_sha256"],
         "scan_vertices": int(len(verts)), "scan_triangles": int(len(tris)),
         **result.report(),
-        "total_seconds": time.perf_counter() - t0,
+        "warnings": outcome_text.warning_lines(result.outcome, result.flagged, result.dropped),
     }
-    meshio.write_obj(out_dir / "adapted_head.obj", result.verts_scan, tpl.skin.tris,
+    meshio.write_obj(outputs["adapted OBJ"], result.verts_scan, tpl.skin.tris,
                      header="HeadAdapt adapted skin, template vertex order, scan frame and unit")
-    meshio.write_atomic(out_dir / "report.json", json.dumps(report, indent=1, default=float))
     for lv in result.levels:
         log(f"  level {lv.level}: {lv.method:5s} {lv.pairs:5d} pairs  E_d {lv.E_d:8.3f} mm^2  "
             f"RMS {lv.E_d_rms_mm:6.3f} mm  E {lv.E:8.3f}  {lv.seconds:6.2f} s")
@@ -105,120 +247,393 @@ def run_adapt(scan_path, landmarks_path, out_dir, levels=4, calibration="auto", 
     if result.unfolded and result.unfolded["folded_triangles"]:
         log(f"  {result.unfolded['folded_triangles']} folded triangles relaxed "
             f"({result.unfolded['vertices_relaxed']} vertices), {result.unfolded['folded_left']} left")
-    log(f"headadapt: best level {result.best_level}; {outcome_text.verdict(result.outcome)}")
-    for line in outcome_text.warning_lines(result.outcome, result.flagged, result.dropped):
-        warn(f"headadapt: warning: {line}")
-    log(f"headadapt: wrote {out_dir / 'adapted_head.obj'} and {out_dir / 'report.json'} in "
-        f"{report['total_seconds']:.2f} s")
-    if blend:
-        from .blender import blendout
-        blendout.write_blend(blend, tpl, result, verts, tris, points, report)
-        log(f"headadapt: wrote {blend}")
+    if "--blend file" in outputs:
+        _write_blend(outputs["--blend file"], tpl, result, verts, tris, points, report)
+    report["total_seconds"] = time.perf_counter() - t0
+    meshio.write_atomic(outputs["report"], json.dumps(report, indent=1, default=float))
     return report
 
 
+def _write_blend(path, tpl, result, verts, tris, points, report):
+    """The .blend through blendout (the only place the batch job imports bpy); Blender's failure to
+    save (a full disk, a folder it cannot write) becomes a FileFormatError naming the file."""
+    from .blender import blendout
+    from .core.exceptions import FileFormatError
+
+    try:
+        blendout.write_blend(path, tpl, result, verts, tris, points, report)
+    except RuntimeError as exc:            # bpy.ops report failures as RuntimeError
+        raise FileFormatError(f"cannot write {path}: {str(exc).strip()}") from None
+
+
+# ---------------------------------------------------------------------------------------------
+# folder mode
+# ---------------------------------------------------------------------------------------------
 def find_pairs(folder):
     """[(scan path, landmark path or None)] for every scan file in folder, sorted by name."""
     folder = pathlib.Path(folder)
     out = []
-    for scan in sorted(p for p in folder.iterdir() if p.suffix.lower() in (".obj", ".ply", ".stl")):
+    for scan in sorted(p for p in folder.iterdir() if p.suffix.lower() in SCAN_SUFFIXES and not p.is_dir()):
         marks = [scan.with_suffix(s) for s in (".json", ".pp") if scan.with_suffix(s).is_file()]
         out.append((scan, marks[0] if marks else None))
     return out
 
 
-def _folder_job(job):
-    scan, marks, out_dir, levels, calibration, keep_flagged, blend = job
-    from .core.exceptions import HeadAdaptError
-    if marks is None:
-        return {"scan": str(scan), "ok": False, "error": f"no landmark file {scan.stem}.json or {scan.stem}.pp beside it"}
-    warnings = []
+def output_names(scans: list[pathlib.Path]) -> list[str]:
+    """One output folder name per scan, distinct even where file systems ignore case: the stem, or
+    STEM_EXT where scans share a stem (head.obj and head.ply: head_obj, head_ply), numbered if still taken."""
+    stems = collections.Counter(s.stem.casefold() for s in scans)
+    seen, names = set(), []
+    for scan in scans:
+        base = scan.stem if stems[scan.stem.casefold()] == 1 else f"{scan.stem}_{scan.suffix[1:].lower()}"
+        name, k = base, 2
+        while name.casefold() in seen:
+            name, k = f"{base}-{k}", k + 1
+        seen.add(name.casefold())
+        names.append(name)
+    return names
+
+
+def _child_command(job: dict) -> list[str]:
+    """The command that runs one scan of folder mode: this Python with the package importable, or, inside
+    a Blender binary (whose Python cannot import bpy), Blender itself in background mode."""
+    bpy = sys.modules.get("bpy")
+    blender = getattr(getattr(bpy, "app", None), "binary_path", "") if bpy else ""
+    if blender:
+        return [blender, "-b", "--factory-startup", "--python", str(ROOT / "headadapt_addon" / "batch.py"),
+                "--", "_scan", json.dumps(job)]
+    return [sys.executable, "-m", "headadapt_addon.batch", "_scan", json.dumps(job)]
+
+
+_running: set = set()          # the scan processes this process started and has not yet reaped
+_running_lock = threading.Lock()
+_stopping = threading.Event()  # set on Ctrl-C / SIGTERM: start no more scans
+
+
+def _kill(proc: subprocess.Popen) -> None:
+    """End a scan process and its children (it leads its own process group)."""
     try:
-        rep = run_adapt(scan, marks, out_dir, levels, calibration, keep_flagged,
-                        str(pathlib.Path(out_dir) / f"{scan.stem}.blend") if blend else None, log=lambda *a: None,
-                        warn=lambda line: warnings.append(line.removeprefix("headadapt: warning: ")))
-    except HeadAdaptError as exc:
-        return {"scan": str(scan), "ok": False, "error": str(exc)}
-    best = rep["levels"][rep["best_level"]]
-    return {"scan": str(scan), "ok": True, "outcome_ok": rep["outcome"]["ok"], "best_level": rep["best_level"],
-            "E_d_rms_mm": best["E_d_rms_mm"], "outcome": rep["outcome"], "seconds": rep["total_seconds"],
-            "flagged_fdps": list(rep["flagged_fdps"]), "warnings": warnings}
+        if hasattr(os, "killpg"):
+            os.killpg(proc.pid, signal.SIGKILL)
+        else:
+            proc.kill()
+    except (ProcessLookupError, PermissionError):
+        pass
 
 
-def run_folder(folder, out, jobs=0, levels=4, calibration="auto", keep_flagged=False, blend=False, log=print,
-               warn=_stderr):
-    """Adapt every scan + landmarks pair of a folder in a process pool; failures are reported, not fatal.
-    A scan adapted with an outcome that is not ok counts as done with warnings ("outcome_ok": false)."""
-    import concurrent.futures
-    import os
-
+def run_isolated(job: dict) -> dict:
+    """Run one scan of folder mode in its own process (time and memory limits, killed at the timeout) and
+    return its summary entry. Runs in a thread of the local pool or as a task on a Dask worker; either
+    way the scan's log is OUT/NAME/log.txt and its report.json says how it ended."""
     from .core import meshio
-    from .core.adapt import outcome as outcome_text
+
+    out_dir = pathlib.Path(job["out_dir"])
+    entry = {"scan": job["scan"], "landmarks": job["landmarks"], "out": str(out_dir), "ok": False}
+    if _stopping.is_set():
+        return {**entry, "status": "not finished", "error": "interrupted before it started"}
+    if job["landmarks"] is None:
+        stem = pathlib.Path(job["scan"]).stem
+        error = f"{job['scan']}: no landmark file {stem}.json or {stem}.pp beside it"
+        meshio.write_atomic(out_dir / "report.json", json.dumps(
+            {"status": "failed", "run": job["run"], "scan": job["scan"], "error": error}, indent=1))
+        return {**entry, "status": "failed", "error": error, "seconds": 0.0}
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")])))
+    t0 = time.monotonic()
+    out_dir.mkdir(parents=True, exist_ok=True)
+    with open(out_dir / "log.txt", "wb") as log_file:
+        proc = subprocess.Popen(_child_command(job), stdin=subprocess.PIPE, stdout=log_file, stderr=subprocess.STDOUT,
+                                env=env, start_new_session=True)
+        with _running_lock:
+            _running.add(proc)
+        try:
+            code = proc.wait(timeout=job["timeout"])
+        except subprocess.TimeoutExpired:
+            _kill(proc)
+            code = proc.wait()
+            timed_out = True
+        else:
+            timed_out = False
+        finally:
+            with _running_lock:
+                _running.discard(proc)
+            proc.stdin.close()
+    seconds = time.monotonic() - t0
+    report = _read_report(out_dir / "report.json", job["run"])
+    if timed_out:
+        status, error = "timeout", f"{job['scan']}: no result after {job['timeout']:g} s; its process was killed"
+    elif report.get("status") in ("done", "failed"):
+        status, error = report["status"], report.get("error")
+    elif _stopping.is_set():
+        status, error = "not finished", "interrupted while running; its process was killed"
+    else:
+        status = "failed"
+        error = (f"{job['scan']}: its process ended with code {code}"
+                 + (f" (signal {-code}: killed, out of memory?)" if code < 0 else "") + " without a result")
+    if status != "done":
+        meshio.write_atomic(out_dir / "report.json", json.dumps(
+            {**report, "status": "failed" if status != "not finished" else status, "run": job["run"],
+             "scan": job["scan"], "error": error}, indent=1))
+        return {**entry, "status": status, "error": error, "seconds": seconds}
+    return {**entry, "status": "done", "ok": True, "outcome_ok": report["outcome"]["ok"],
+            "best_level": report["best_level"], "E_d_rms_mm": report["levels"][report["best_level"]]["E_d_rms_mm"],
+            "outcome": report["outcome"], "seconds": seconds, "flagged_fdps": list(report["flagged_fdps"]),
+            "warnings": report["warnings"], "inputs_sha256": report["inputs_sha256"]}
+
+
+def _read_report(path: pathlib.Path, run: str) -> dict:
+    """report.json if it belongs to this run, else {}."""
+    try:
+        report = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return {}
+    return report if isinstance(report, dict) and report.get("run") == run else {}
+
+
+def _scan_main(job_text: str) -> int:
+    """The process of one scan in folder mode: memory limit, end with the parent, adapt, exit code."""
+    job = json.loads(job_text)
+    try:
+        import resource
+    except ImportError:                  # Windows: no address-space limit
+        pass
+    else:
+        limit = int(job["memory_gb"] * (1 << 30))
+        _, hard = resource.getrlimit(resource.RLIMIT_AS)
+        resource.setrlimit(resource.RLIMIT_AS, (limit if hard == resource.RLIM_INFINITY else min(limit, hard), hard))
+    # The parent holds our stdin open; when it dies (kill -9) the pipe closes and this scan stops too.
+    threading.Thread(target=_exit_with_parent, daemon=True).start()
+    return _adapt_exit_code(job["scan"], job["landmarks"], job["out_dir"], job["levels"], job["calibration"],
+                            job["keep_flagged"], job["blend"], True, job["run"],
+                            memory_hint=f" (the limit is {job['memory_gb']:g} GB: --memory-gb)")
+
+
+def _exit_with_parent() -> None:
+    """Read stdin (a pipe from the parent, never written) until it closes, then end this process at once.
+    os.read, not sys.stdin: a daemon thread blocked in a buffered reader aborts the interpreter's exit."""
+    while os.read(0, 4096):
+        pass
+    os._exit(EXIT_BUG)
+
+
+def _adapt_exit_code(scan, landmarks, out, levels, calibration, keep_flagged, blend, overwrite, run_id=None,
+                     memory_hint=""):
+    """run_adapt with the error contract: 0/3 by the outcome, 2 with one line for bad input; an internal
+    error prints its traceback and one line naming the scan, exit 1."""
+    from .core.exceptions import HeadAdaptError
+
+    try:
+        report = run_adapt(scan, landmarks, out, levels, calibration, keep_flagged, blend, overwrite, run_id)
+    except HeadAdaptError as exc:
+        _stderr(f"headadapt: error: {exc}")
+        return EXIT_BAD_INPUT
+    except MemoryError:
+        _stderr(f"headadapt: error: {scan}: out of memory{memory_hint}")
+        return EXIT_BUG
+    except Exception:
+        traceback.print_exc()
+        _stderr(f"headadapt: internal error while adapting {scan} (the traceback above); please report it")
+        return EXIT_BUG
+    return EXIT_OK if report["outcome"]["ok"] else EXIT_UNTRUSTWORTHY
+
+
+def run_folder(folder, out, jobs=0, levels=4, calibration="auto", keep_flagged=False, blend=False, overwrite=False,
+               timeout=900.0, memory_gb=8.0, scheduler=None, log=print, warn=_stderr):
+    """Adapt every scan + landmarks pair of a folder, each scan in its own process (local threads start
+    them, or the tasks of a Dask cluster at `scheduler`); return the summary, also in OUT/summary.json,
+    which is rewritten after every scan and after an interruption (Ctrl-C, SIGTERM: "interrupted" true,
+    the scans not done "not finished"). A scan adapted with an outcome that is not ok counts as done
+    with warnings ("outcome_ok": false); a failed scan never stops the others."""
+    from .core import meshio
+    from .core.exceptions import FileFormatError
+
+    folder, out = pathlib.Path(folder), pathlib.Path(out)
+    if not folder.is_dir():
+        raise FileFormatError(f"{folder}: no such folder")
     pairs = find_pairs(folder)
     if not pairs:
-        from .core.exceptions import FileFormatError
         raise FileFormatError(f"{folder}: no OBJ, PLY or STL scans in this folder")
-    out = pathlib.Path(out)
-    work = [(s, m, out / s.stem, levels, calibration, keep_flagged, blend) for s, m in pairs]
-    workers = jobs or min(len(work), os.cpu_count() or 1)
-    import multiprocessing
-    ctx = multiprocessing.get_context("spawn")     # bpy and fork do not mix
-    with concurrent.futures.ProcessPoolExecutor(max_workers=workers, mp_context=ctx) as pool:
-        results = list(pool.map(_folder_job, work))
-    for r in results:
-        name = pathlib.Path(r["scan"]).name
-        if not r["ok"]:
-            log(f"  FAIL {name}: {r['error']}")
-            continue
-        log(f"  {'ok  ' if r['outcome_ok'] else 'WARN'} {name}: level {r['best_level']}, "
-            f"{outcome_text.verdict(r['outcome'])}, {r['seconds']:.1f} s")
-        for line in r["warnings"]:
+    names = output_names([s for s, _ in pairs])
+    run = uuid.uuid4().hex
+    work = [{"scan": str(s), "landmarks": str(m) if m else None, "out_dir": str(out / name), "name": name,
+             "blend": str(out / name / f"{name}.blend") if blend else None, "levels": levels,
+             "calibration": calibration, "keep_flagged": keep_flagged, "timeout": timeout, "memory_gb": memory_gb,
+             "run": run} for (s, m), name in zip(pairs, names)]
+    outputs = {"summary": out / "summary.json"}
+    for job in work:
+        outputs.update({f"{what} of {job['name']}": path for what, path in
+                        {**result_paths(job["out_dir"], job["blend"]),
+                         "log": pathlib.Path(job["out_dir"]) / "log.txt"}.items()})
+    check_outputs([p for pair in pairs for p in pair if p], outputs, overwrite)
+    remove_results(outputs.values())
+    entries = {job["scan"]: {"scan": job["scan"], "landmarks": job["landmarks"], "out": job["out_dir"],
+                             "status": "not finished", "ok": False} for job in work}
+    summary = {"folder": str(folder), "out": str(out), "scheduler": scheduler or "local", "run": run,
+               "interrupted": False}
+
+    def write_summary():
+        scans = list(entries.values())
+        summary.update(done=sum(e["ok"] for e in scans),
+                       done_with_warnings=sum(e["ok"] and not e["outcome_ok"] for e in scans),
+                       failed=sum(e["status"] in ("failed", "timeout") for e in scans),
+                       not_finished=sum(e["status"] == "not finished" for e in scans), scans=scans)
+        meshio.write_atomic(out / "summary.json", json.dumps(summary, indent=1, default=float))
+
+    write_summary()
+    t0, finished = time.monotonic(), 0
+
+    def record(entry):
+        nonlocal finished
+        entries[entry["scan"]] = entry
+        finished += 1
+        name = pathlib.Path(entry["scan"]).name
+        if entry["ok"]:
+            from .core.adapt import outcome as outcome_text
+            what = (f"{'ok  ' if entry['outcome_ok'] else 'WARN'} {name}: level {entry['best_level']}, "
+                    f"{outcome_text.verdict(entry['outcome'])}")
+        else:
+            what = f"{'FAIL' if entry['status'] != 'not finished' else 'STOP'} {name}: {entry['error']}"
+        elapsed = time.monotonic() - t0
+        eta = elapsed / finished * (len(work) - finished)
+        log(f"[{finished}/{len(work)}] {what} ({entry.get('seconds', 0.0):.1f} s); "
+            f"elapsed {_clock(elapsed)}, ETA {_clock(eta)}")
+        for line in entry.get("warnings", []):
             warn(f"headadapt: warning: {name}: {line}")
-    summary = {"folder": str(folder), "done": sum(r["ok"] for r in results),
-               "done_with_warnings": sum(r["ok"] and not r["outcome_ok"] for r in results),
-               "failed": sum(not r["ok"] for r in results), "scans": results}
-    meshio.write_atomic(out / "summary.json", json.dumps(summary, indent=1, default=float))
+        write_summary()
+
+    log(f"headadapt: {len(work)} scans from {folder} into {out} "
+        f"({'Dask scheduler ' + scheduler if scheduler else 'local processes'})")
+    previous = _on_sigterm_interrupt()
+    try:
+        if scheduler:
+            _run_dask(scheduler, work, record)
+        else:
+            _run_local(work, jobs or min(len(work), os.cpu_count() or 1), record)
+    except KeyboardInterrupt:
+        summary["interrupted"] = True
+        log(f"headadapt: interrupted: {sum(e['status'] == 'not finished' for e in entries.values())} scans "
+            "not finished")
+    finally:
+        _restore_sigterm(previous)
+        write_summary()
     log(f"headadapt: {summary['done']} adapted ({summary['done_with_warnings']} not trustworthy), "
-        f"{summary['failed']} failed; wrote {out / 'summary.json'}")
+        f"{summary['failed']} failed, {summary['not_finished']} not finished; wrote {out / 'summary.json'}")
     return summary
 
 
+def _clock(seconds: float) -> str:
+    seconds = int(round(seconds))
+    return f"{seconds // 3600}:{seconds // 60 % 60:02d}:{seconds % 60:02d}"
+
+
+def _on_sigterm_interrupt():
+    """SIGTERM ends folder mode as Ctrl-C does (summary written); returns the handler it replaced."""
+    if threading.current_thread() is not threading.main_thread():
+        return None
+    return signal.signal(signal.SIGTERM, signal.default_int_handler)
+
+
+def _restore_sigterm(previous) -> None:
+    if previous is not None:
+        signal.signal(signal.SIGTERM, previous)
+
+
+def _run_local(work: list[dict], jobs: int, record) -> None:
+    """The scans in a pool of `jobs` threads, each waiting on one scan's process; on KeyboardInterrupt
+    the scans not started are dropped, the running ones killed, and the interrupt passes on."""
+    import concurrent.futures
+
+    _stopping.clear()
+    pool = concurrent.futures.ThreadPoolExecutor(max_workers=max(1, jobs))
+    futures, recorded = [pool.submit(run_isolated, job) for job in work], set()
+    try:
+        for fut in concurrent.futures.as_completed(futures):
+            recorded.add(fut)
+            record(fut.result())
+    except KeyboardInterrupt:
+        _stopping.set()
+        with _running_lock:
+            for proc in list(_running):
+                _kill(proc)
+        pool.shutdown(wait=True, cancel_futures=True)
+        for fut in futures:     # scans that ended before the interrupt reached them
+            if fut not in recorded and fut.done() and not fut.cancelled() and fut.result()["status"] != "not finished":
+                record(fut.result())
+        raise
+    finally:
+        pool.shutdown(wait=True, cancel_futures=True)
+        _stopping.clear()
+
+
+def _run_dask(scheduler: str, work: list[dict], record) -> None:
+    """The same per-scan jobs (run_isolated) as tasks on a Dask distributed cluster; dask is imported
+    only here. On KeyboardInterrupt the tasks are cancelled (a running scan still ends at its timeout)."""
+    import importlib
+
+    from .core.exceptions import HeadAdaptError
+
+    # the task by its module's name (run as ``python -m``, this module is __main__, which workers lack)
+    task = importlib.import_module("headadapt_addon.batch").run_isolated
+    try:
+        from distributed import Client, as_completed
+    except ImportError:
+        raise HeadAdaptError("--scheduler needs Dask: pip install 'dask[distributed]'") from None
+    try:
+        client = Client(scheduler, timeout="20s")
+    except (OSError, TimeoutError, ValueError) as exc:
+        raise HeadAdaptError(f"cannot reach the Dask scheduler {scheduler}: {exc}") from None
+    with client:
+        futures = {client.submit(task, job, key=f"headadapt-{job['name']}-{job['run']}", pure=False): job
+                   for job in work}
+        try:
+            for fut in as_completed(futures):
+                job = futures[fut]
+                try:
+                    entry = fut.result()
+                except Exception as exc:           # the task itself failed on the worker
+                    entry = {"scan": job["scan"], "landmarks": job["landmarks"], "out": job["out_dir"], "ok": False,
+                             "status": "failed", "error": f"{job['scan']}: Dask task failed: {type(exc).__name__}: {exc}"}
+                record(entry)
+        except KeyboardInterrupt:
+            client.cancel(list(futures))
+            raise
+
+
 def main(argv=None):
-    """Run one batch command; returns the process exit code (module docstring: 0 ok, 2 bad input,
-    3 the fit finished but is not trustworthy; folder: 1 when no scan could be adapted)."""
+    """Run one batch command; returns the process exit code (module docstring)."""
     from .core.exceptions import HeadAdaptError
 
     if argv is None:
         argv = sys.argv[sys.argv.index("--") + 1:] if "--" in sys.argv else sys.argv[1:]
     args = build_parser().parse_args(argv)
+    if args.command == "_scan":
+        return _scan_main(args.job)
+    if args.command == "adapt":
+        return _adapt_exit_code(args.scan, args.landmarks, args.out, args.levels, args.calibration, args.keep_flagged,
+                                args.blend, args.overwrite)
+    if args.command == "demo":           # the demo's own files, from the bundled inputs: always replaced
+        out = pathlib.Path(args.out)
+        return _adapt_exit_code(SAMPLE_DIR / "scan.ply", SAMPLE_DIR / "landmarks.json", out, args.levels,
+                                args.calibration, args.keep_flagged, out / "demo.blend", True)
     try:
-        if args.command == "demo":
-            out = pathlib.Path(args.out)
-            report = run_adapt(SAMPLE_DIR / "scan.ply", SAMPLE_DIR / "landmarks.json", out, args.levels,
-                               args.calibration, args.keep_flagged, args.blend or str(out / "demo.blend"))
-        elif args.command == "folder":
-            summary = run_folder(args.folder, args.out, args.jobs, args.levels, args.calibration, args.keep_flagged,
-                                 bool(args.blend))
-            if summary["failed"]:
-                return 0 if summary["done"] else 1
-            return 3 if summary["done_with_warnings"] else 0
-        else:
-            report = run_adapt(args.scan, args.landmarks, args.out, args.levels, args.calibration,
-                               args.keep_flagged, args.blend)
+        summary = run_folder(args.folder, args.out, args.jobs, args.levels, args.calibration, args.keep_flagged,
+                             args.blend, args.overwrite, args.timeout, args.memory_gb, args.scheduler)
     except HeadAdaptError as exc:
-        print(f"headadapt: error: {exc}", file=sys.stderr)
-        return 2
-    return 0 if report["outcome"]["ok"] else 3
+        _stderr(f"headadapt: error: {exc}")
+        return EXIT_BAD_INPUT
+    if summary["interrupted"]:
+        return EXIT_INTERRUPTED
+    if summary["failed"] or summary["not_finished"]:
+        return EXIT_SCAN_FAILED
+    return EXIT_UNTRUSTWORTHY if summary["done_with_warnings"] else EXIT_OK
 
 
 if __name__ == "__main__":
     try:
         code = main()
     except Exception:          # a bug, not bad input: Blender would print it and still exit 0
-        import traceback
         traceback.print_exc()
         print("headadapt: internal error (the traceback above); please report it", file=sys.stderr)
-        code = 1
+        code = EXIT_BUG
     if "bpy" in sys.modules and getattr(sys.modules["bpy"].app, "background", False) and code:
         sys.stderr.flush()
     sys.exit(code)

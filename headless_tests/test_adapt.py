@@ -191,12 +191,14 @@ def test_folder_mode_adapts_the_good_pairs_and_reports_the_bad(tmp_path, heads):
     (src / "broken.json").write_text('{"points": {}}')
     proc = subprocess.run([sys.executable, "-m", "headadapt_addon.batch", "folder", "--folder", str(src), "--out",
                            str(tmp_path / "out"), "--levels", "1", "--jobs", "2"], capture_output=True, text=True)
-    assert proc.returncode == 0, proc.stderr
+    assert proc.returncode == 4, proc.stdout + proc.stderr          # 2 of the 4 scans failed
     summary = json.loads((tmp_path / "out" / "summary.json").read_text())
-    assert summary["done"] == 2 and summary["failed"] == 2
+    assert summary["done"] == 2 and summary["failed"] == 2 and summary["not_finished"] == 0
     errors = {pathlib.Path(r["scan"]).name: r.get("error", "") for r in summary["scans"]}
     assert "no landmark file" in errors["nolandmarks.ply"] and "broken.obj" in errors["broken.obj"]
+    assert {r["status"] for r in summary["scans"] if not r["ok"]} == {"failed"}
     assert (tmp_path / "out" / "head1" / "adapted_head.obj").is_file()
+    assert json.loads((tmp_path / "out" / "broken" / "report.json").read_text())["status"] == "failed"
 
 
 def test_batch_runs_as_a_blender_script_with_double_dash(tmp_path):

@@ -1,10 +1,12 @@
 """The batch job inside a real Blender binary: `blender -b --python headadapt_addon/batch.py -- adapt ...`.
 
 CI installs Debian's blender (3.4, system Python 3.11 with Debian's numpy and scipy); skipped where
-no `blender` is on the PATH.
+no `blender` is on the PATH. Debian has no plyfile or trimesh (the scan readers; the extension bundles
+them): the test environment's pure-Python copies are put on Blender's PYTHONPATH.
 """
 import json
 import os
+import pathlib
 import shutil
 import subprocess
 
@@ -20,10 +22,24 @@ BLENDER = shutil.which("blender")
 pytestmark = [pytest.mark.skipif(BLENDER is None, reason="no blender binary on the PATH"), pytest.mark.slow]
 
 
+def _readers_path(folder):
+    """A folder holding links to this environment's plyfile and trimesh (pure Python), for Blender's Python."""
+    import plyfile
+    import trimesh
+
+    folder.mkdir(exist_ok=True)
+    for module in (plyfile, trimesh):
+        source = pathlib.Path(module.__file__)
+        source = source.parent if source.name == "__init__.py" else source
+        (folder / source.name).symlink_to(source)
+    return folder
+
+
 def _run(*args, cwd):
     # The environment Python saw at start: bpy 5.2 sets OCIO (its own colour config, newer than Debian's
     # OpenColorIO reads) in the process's C environment, which a child would otherwise inherit.
     env = {k: v for k, v in os.environ.items() if k != "OCIO"}
+    env["PYTHONPATH"] = str(_readers_path(cwd / "readers"))
     return subprocess.run([BLENDER, "-b", "--factory-startup", "--python", str(ROOT / "headadapt_addon" / "batch.py"),
                            "--", *args], capture_output=True, text=True, cwd=cwd, env=env, timeout=600)
 

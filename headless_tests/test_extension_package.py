@@ -1,7 +1,7 @@
 """The built Linux zip passes Blender's validation, installs and enables as an extension in a clean
 user config under the running bpy (5.0.1 on Python 3.11 or 5.2.3 on Python 3.13: ./ha test runs both),
-registers every operator, imports scipy from the wheel it bundles for this Python (not the
-environment's), and runs the sample workflow from the installed copy.
+registers every operator, imports scipy from the wheel it bundles for this Python and the scan readers'
+plyfile and trimesh from theirs (not the environment's), and runs the sample workflow from the installed copy.
 
 The zip is built once per session with tools/build_extension.py (reused while it is newer than every
 file it is built from; the first build downloads the two ~37 MB scipy wheels into the wheel cache).
@@ -84,6 +84,11 @@ extensions_dir = bpy.utils.user_resource("EXTENSIONS")
 site = os.path.join(extensions_dir, ".local", "lib", "python%d.%d" % sys.version_info[:2], "site-packages")
 distance, index = scipy.spatial.cKDTree(np.eye(3)).query([0.9, 0.1, 0.0])
 installed = os.listdir(site) if os.path.isdir(site) else []
+# the scan readers from the bundled plyfile and trimesh wheels
+meshio = importlib.import_module(EXT_MODULE + ".headadapt_addon.core.meshio")
+scan_counts = [len(a) for a in meshio.read_mesh(os.path.join(os.path.dirname(importlib.import_module(EXT_MODULE).__file__),
+                                                            "assets", "sample_scan", "scan.ply"))]
+import plyfile, trimesh
 
 ext = importlib.import_module(EXT_MODULE)
 sample = os.path.join(os.path.dirname(ext.__file__), "assets", "sample_scan")
@@ -121,6 +126,8 @@ print(RESULT_MARK + json.dumps({
     "site_on_path": site in sys.path,
     "site_before_interpreter": [p for p in sys.path if p.endswith("site-packages")][:1] == [site],
     "site_dist_info": sorted(n for n in installed if n.endswith(".dist-info")),
+    "scan_counts": scan_counts,
+    "reader_files": [plyfile.__file__, trimesh.__file__],
     "scipy_file": scipy.__file__,
     "scipy_version": scipy.__version__,
     "scipy_files": scipy_files,
@@ -195,7 +202,9 @@ def test_this_blender_and_its_python_are_inside_what_the_extension_supports():
     assert WHEEL_SET is not None, f"no scipy wheel is bundled for Python {THIS_PYTHON} (tools/build_extension.py)"
     # the tracked manifest (rewritten by a full build) lists each Python's wheel once for every platform
     assert sorted(MANIFEST["platforms"]) == list(build_extension.ALL_PLATFORMS)
-    assert len(MANIFEST["wheels"]) == len(build_extension.WHEEL_SETS) * len(build_extension.ALL_PLATFORMS)
+    assert len(MANIFEST["wheels"]) == (len(build_extension.WHEEL_SETS) * len(build_extension.ALL_PLATFORMS)
+                                       + len(build_extension.PURE_WHEELS))
+    assert {f"./wheels/{n}-{v}-py3-none-any.whl" for n, v in build_extension.PURE_WHEELS} <= set(MANIFEST["wheels"])
     for ws in build_extension.WHEEL_SETS:
         prefix = f"./wheels/scipy-{ws.version}-{ws.abi}-{ws.abi}-"
         platforms = sorted(_platform_of(w) for w in MANIFEST["wheels"] if w.startswith(prefix))
@@ -214,9 +223,12 @@ def test_linux_zip_ships_the_addon_the_template_and_the_linux_wheel_for_each_pyt
         names = archive.namelist()
         manifest = tomllib.loads(archive.read("blender_manifest.toml").decode("utf-8"))
     wheels = sorted(name for name in names if name.endswith(".whl"))
+    pure = sorted(f"wheels/{n}-{v}-py3-none-any.whl" for n, v in build_extension.PURE_WHEELS)
+    scipy = [w for w in wheels if w not in pure]
     expected = [f"wheels/scipy-{ws.version}-{ws.abi}-{ws.abi}-" for ws in build_extension.WHEEL_SETS]
-    assert len(wheels) == len(expected) and all(w.startswith(e) for w, e in zip(wheels, expected)), wheels
-    assert all("manylinux" in w and w.endswith("x86_64.whl") for w in wheels), wheels
+    assert sorted(set(wheels) - set(scipy)) == pure, wheels
+    assert len(scipy) == len(expected) and all(w.startswith(e) for w, e in zip(scipy, expected)), wheels
+    assert all("manylinux" in w and w.endswith("x86_64.whl") for w in scipy), wheels
     assert manifest["build"]["generated"]["platforms"] == ["linux-x64"]
     assert sorted(manifest["build"]["generated"]["wheels"]) == sorted("./" + w for w in wheels)
     assert (manifest["blender_version_min"], manifest["blender_version_max"]) == ("4.2.13", "5.3.0")
@@ -259,7 +271,10 @@ def test_linux_zip_installs_registers_and_runs_the_workflow_in_a_clean_user_conf
     site = pathlib.Path(restarted["site"])
     assert site.parent.name == f"python{THIS_PYTHON}"
     assert restarted["site_on_path"] and restarted["site_before_interpreter"], log
-    assert restarted["site_dist_info"] == [f"scipy-{WHEEL_SET.version}.dist-info"], restarted["site_dist_info"]
+    assert restarted["site_dist_info"] == sorted([f"scipy-{WHEEL_SET.version}.dist-info"] + [
+        f"{n}-{v}.dist-info" for n, v in build_extension.PURE_WHEELS]), restarted["site_dist_info"]
+    assert all(pathlib.Path(f).is_relative_to(site) for f in restarted["reader_files"]), restarted["reader_files"]
+    assert restarted["scan_counts"] == [32918, 65141]
     assert pathlib.Path(restarted["scipy_file"]).is_relative_to(site), restarted["scipy_file"]
     assert restarted["scipy_version"] == WHEEL_SET.version
     assert restarted["scipy_files"] and all(pathlib.Path(f).is_relative_to(site) for f in restarted["scipy_files"])

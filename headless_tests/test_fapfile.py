@@ -67,7 +67,11 @@ HEAD = "2.1 x 25 1\n"
 
 
 @pytest.mark.parametrize("text, where", [
-    ("", "line 1: bad header"),
+    ("", "the FAP file is empty (0 bytes)"),
+    ("2.1 x 25 99999999\n", "line 1) says 99999999 frames, the file holds only 0"),   # 18 bytes asking for GBs
+    ("2.1 x 25 1e300\n", "frames, the file holds only 0"),
+    (HEAD + MASK(3) + "\n1e300 1\n", "line 3: frame number '1e300' is not a whole number of 64 bits"),
+    (HEAD + MASK(3) + "\n0 1" + "0" * 5000 + "\n", "line 3: '1000"),
     ("# only a comment\n2.1 x 25\n", "line 2: bad header"),
     ("v2 x 25 1\n", "line 1: 'v2' is not a number"),
     ("2.1 x 0 1\n", "line 1: frame rate 0"),

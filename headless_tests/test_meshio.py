@@ -1,4 +1,10 @@
-"""Scan and landmark files: OBJ/PLY/STL read the template skin back exactly; landmarks round-trip."""
+"""Scan and landmark files: OBJ/PLY/STL read the template skin back exactly; landmarks round-trip;
+malformed files end in one FileFormatError naming the file; writes are atomic."""
+import errno
+import os
+import subprocess
+import sys
+
 import numpy as np
 import pytest
 
@@ -30,7 +36,10 @@ def test_obj_round_trip(tmp_path, skin):
 def test_obj_polygons_slashes_and_negative_indices(tmp_path):
     (tmp_path / "q.obj").write_text("v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nvt 0 0\nf 1/1/1 2/1/1 3/1/1 4/1/1\nf -4 -2 -1\n")
     v, t = meshio.read_mesh(tmp_path / "q.obj")
-    np.testing.assert_array_equal(t, [[0, 1, 2], [0, 2, 3], [0, 2, 3]])
+    # the quad as two triangles (either diagonal), the negative indices counted from the end; winding kept
+    rolled = np.array([np.roll(tri, -int(np.argmin(tri))) for tri in t])
+    assert {tuple(r) for r in rolled[:2]} in ({(0, 1, 2), (0, 2, 3)}, {(0, 1, 3), (1, 2, 3)})
+    np.testing.assert_array_equal(rolled[2], [0, 2, 3])
 
 
 @pytest.mark.parametrize("fmt", ["binary_little_endian", "binary_big_endian", "ascii"])
@@ -87,6 +96,59 @@ def test_bad_scan_files_name_the_file_and_problem(tmp_path):
         meshio.read_mesh(tmp_path / "oob.obj")
 
 
+TRI_PLY = ("ply\nformat {fmt} 1.0\nelement vertex {nv}\nproperty float x\nproperty float y\nproperty float z\n"
+           "element face {nf}\nproperty list uchar int vertex_indices\nend_header\n")
+
+
+@pytest.mark.parametrize("name, content, where", [
+    # errors raised inside the libraries (plyfile, trimesh, numpy), not by HeadAdapt's own checks
+    ("short.ply", TRI_PLY.format(fmt="binary_little_endian", nv=3, nf=1).encode() + b"\0" * 40,
+     "cannot read as PLY"),
+    ("word.ply", (TRI_PLY.format(fmt="ascii", nv=3, nf=1) + "0 0 0\n1 0 0\n0 1 zero\n3 0 1 2\n").encode(),
+     "cannot read as PLY"),
+    ("facesonly.obj", b"f 1 2 3\n", "cannot read as OBJ"),
+    ("twocoords.obj", b"v 0 0\nv 1 0\nv 0 1\nf 1 2 3\n", "does not exist"),
+    ("badfacet.stl", b"solid s\nfacet normal 0 0 0\nouter loop\nvertex 0 0 0\nvertex 1 0 0\nendloop\n"
+                     b"endfacet\nendsolid s\n", "cannot read as STL"),
+    # HeadAdapt's own checks, before and after the library
+    ("huge.ply", TRI_PLY.format(fmt="ascii", nv=10 ** 12, nf=1).encode() + b"0 0 0\n", "over the limit"),
+    ("counts.ply", TRI_PLY.format(fmt="binary_little_endian", nv=1000, nf=1000).encode() + b"\0" * 100,
+     "the file holds only 100 bytes"),
+    ("negative.ply", TRI_PLY.format(fmt="ascii", nv=-3, nf=1).encode(), "declares -3"),
+    ("nan.obj", b"v 0 0 nan\nv 1 0 0\nv 0 1 0\nf 1 2 3\n", "vertex 1 is not finite"),
+    ("zero.obj", b"v 0 0 0\nv 1 0 0\nv 0 1 0\nf 0 1 2\n", "line 4: face index 0"),
+    ("zero2.obj", b"v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\nf 1/1 -0/1 2/1\n", "line 5: face index 0"),
+    ("empty.stl", b"", "empty"),
+    ("garbage.stl", b"\x00" * 90, "not an STL file"),
+])
+def test_malformed_scans_end_in_one_error_naming_the_file(tmp_path, name, content, where):
+    (tmp_path / name).write_bytes(content)
+    with pytest.raises(FileFormatError) as err:
+        meshio.read_mesh(tmp_path / name)
+    assert type(err.value) is FileFormatError                    # not a library's exception passing through
+    assert str(err.value).startswith(str(tmp_path / name)) and where in str(err.value), str(err.value)
+    assert "\n" not in str(err.value)
+
+
+def test_blender_binary_ply_of_quads_and_triangles_reads(tmp_path, clean_scene):
+    """Blender 5.0's own binary PLY export of a mixed quad/triangle mesh (a UV sphere: quads, and
+    triangle fans at the poles) reads with every polygon fanned into triangles."""
+    import bpy
+
+    bpy.ops.mesh.primitive_uv_sphere_add(segments=16, ring_count=8)
+    mesh = bpy.context.active_object.data
+    sizes = sorted({len(p.vertices) for p in mesh.polygons})
+    assert sizes == [3, 4]
+    n_tris = sum(len(p.vertices) - 2 for p in mesh.polygons)
+    for ascii_format in (False, True):
+        path = tmp_path / f"sphere_{ascii_format}.ply"
+        bpy.ops.wm.ply_export(filepath=str(path), ascii_format=ascii_format, export_uv=False, export_normals=False)
+        assert path.read_bytes().startswith(b"ply\nformat " + (b"ascii" if ascii_format else b"binary_little_endian"))
+        v, t = meshio.read_mesh(path)
+        assert len(v) == len(mesh.vertices) and len(t) == n_tris
+        np.testing.assert_allclose(np.linalg.norm(v, axis=1), 1.0, atol=1e-5)     # all on the unit sphere
+        area = 0.5 * np.linalg.norm(np.cross(v[t[:, 1]] - v[t[:, 0]], v[t[:, 2]] - v[t[:, 0]]), axis=1)
+        assert area.min() > 0 and 0.9 * 4 * np.pi < area.sum() < 4 * np.pi
 @pytest.mark.parametrize("suffix", [".json", ".pp"])
 def test_landmarks_round_trip_exactly(tmp_path, skin, suffix):
     _, _, fdps = skin
@@ -110,11 +172,80 @@ def test_bad_landmark_files_are_named(tmp_path):
         meshio.read_landmarks(tmp_path / "b.json")
 
 
-def test_atomic_write_leaves_no_partial_file(tmp_path):
+BOMB = ('<?xml version="1.0"?>\n<!DOCTYPE PickedPoints [\n <!ENTITY a "aaaaaaaaaa">\n'
+        + "".join(f' <!ENTITY {c} "{("&" + p + ";") * 10}">\n' for p, c in zip("abcdefgh", "bcdefghi"))
+        + ']>\n<PickedPoints><point name="&i;" x="0" y="0" z="0"/></PickedPoints>\n')
+
+
+@pytest.mark.parametrize("name, content, where", [
+    ("nan.json", b'{"points": {"3.7": [NaN, 0, 0]}}', "NaN is not a number"),
+    ("inf.json", b'{"points": {"3.7": [1e999, 0, 0]}}', "FDP 3.7 must be three finite numbers"),
+    ("bigint.json", b'{"points": {"3.7": [1' + b"0" * 400 + b', 0, 0]}}', "FDP 3.7 must be three finite"),
+    ("longint.json", b'{"points": {"3.7": [1' + b"0" * 5000 + b', 0, 0]}}', "cannot read landmarks"),
+    ("bool.json", b'{"points": {"3.7": [true, 0, 0]}}', "FDP 3.7 must be three finite numbers"),
+    ("deep.json", b"[" * 100_000 + b"]" * 100_000, "nested too deep"),
+    ("list.json", b"[1, 2, 3]", "expected a JSON object"),
+    ("markers.json", b'{"points": {"3.7": [0, 0, 0]}, "markers": {"m": [0, "x", 0]}}', "marker m must be three"),
+    ("latin1.json", '{"points": {"3.7": [0, 0, 0]}, "who": "Ren\u00e9"}'.encode("latin-1"), "not UTF-8"),
+    ("empty.json", b"", "empty"),
+    ("bomb.pp", BOMB.encode(), "entity declarations are not allowed"),
+    ("nan.pp", b'<PickedPoints><point name="3.7" x="nan" y="0" z="0"/></PickedPoints>', "FDP 3.7 must be three"),
+    ("noxyz.pp", b'<PickedPoints><point name="3.7" x="1"/></PickedPoints>', "needs numbers x, y and z"),
+    ("broken.pp", b"<PickedPoints><point", "cannot read landmarks"),
+])
+def test_malformed_landmark_files_end_in_one_error_naming_the_file(tmp_path, name, content, where):
+    (tmp_path / name).write_bytes(content)
+    with pytest.raises((FileFormatError, LandmarkError)) as err:
+        meshio.read_landmarks(tmp_path / name)
+    assert str(err.value).startswith(str(tmp_path / name)) and where in str(err.value), str(err.value)
+
+
+def test_atomic_write_keeps_the_old_file_when_the_rename_fails(tmp_path, monkeypatch):
     target = tmp_path / "out" / "a.obj"
-    meshio.write_atomic(target, "x")
-    assert target.read_text() == "x" and [p.name for p in target.parent.iterdir()] == ["a.obj"]
+    meshio.write_atomic(target, "old")
+    assert target.read_text() == "old" and [p.name for p in target.parent.iterdir()] == ["a.obj"]
+
+    def no_space(src, dst):
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+    monkeypatch.setattr(meshio.os, "replace", no_space)
+    with pytest.raises(FileFormatError, match=f"cannot write {target}: No space left on device"):
+        meshio.write_atomic(target, "new " * 1000)
+    # the write went to a temporary file: the target is untouched and the temporary file removed
+    assert target.read_text() == "old" and [p.name for p in target.parent.iterdir()] == ["a.obj"]
+
+
+def test_atomic_write_on_a_full_disk_names_the_file_and_leaves_nothing(tmp_path):
+    """A file-size limit stands in for a full disk: the write itself fails, in a child process."""
+    target = tmp_path / "a.obj"
+    target.write_text("old")
+    code = ("import resource, signal, sys\n"
+            "from headadapt_addon.core import meshio\n"
+            "from headadapt_addon.core.exceptions import FileFormatError\n"
+            "signal.signal(signal.SIGXFSZ, signal.SIG_IGN)\n"
+            "resource.setrlimit(resource.RLIMIT_FSIZE, (4096, resource.RLIM_INFINITY))\n"
+            "try:\n"
+            f"    meshio.write_atomic({str(target)!r}, 'x' * 100_000)\n"
+            "except FileFormatError as exc:\n"
+            "    print(exc)\n")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert proc.stdout.strip() == f"cannot write {target}: File too large", proc.stdout + proc.stderr
+    assert target.read_text() == "old" and [p.name for p in tmp_path.iterdir()] == ["a.obj"]
+
+
+def test_atomic_write_into_a_file_names_it(tmp_path):
     blocked = tmp_path / "file"
     blocked.write_text("")
     with pytest.raises(FileFormatError, match="cannot write"):
         meshio.write_atomic(blocked / "sub" / "a.obj", "x")
+
+
+@pytest.mark.parametrize("module, name", [("plyfile", "scan.ply"), ("trimesh", "scan.obj")])
+def test_a_missing_reader_library_is_one_error_saying_how_to_get_it(tmp_path, monkeypatch, module, name):
+    """A Blender without the extension (which bundles plyfile and trimesh) running batch.py."""
+    (tmp_path / name).write_bytes(b"ply\nformat ascii 1.0\nend_header\n" if name.endswith("ply") else b"v 0 0 0\n")
+    for loaded in [m for m in sys.modules if m == module or m.startswith(module + ".")]:
+        monkeypatch.delitem(sys.modules, loaded)
+    monkeypatch.setitem(sys.modules, module, None)          # import fails
+    with pytest.raises(FileFormatError, match=f"needs the Python package {module}, missing in this Python"):
+        meshio.read_mesh(tmp_path / name)

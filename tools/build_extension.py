@@ -4,8 +4,9 @@
                                     [--wheel-cache DIR]
 
 1. Fetches the scipy wheels for each platform with ``pip download`` (the Python running this script):
-   one per Python that Blender ships (``WHEEL_SETS``), into a cache (default ``$HEADADAPT_CACHE/wheels``,
-   ``~/.cache/headadapt/wheels``), reused when present.
+   one per Python that Blender ships (``WHEEL_SETS``), and the pure-Python wheels of the scan readers
+   (``PURE_WHEELS``: plyfile, trimesh; the same file for every platform and Python), into a cache
+   (default ``$HEADADAPT_CACHE/wheels``, ``~/.cache/headadapt/wheels``), reused when present.
 2. Copies them into ``./wheels/`` (gitignored).
 3. With every platform requested (the default), rewrites ``platforms`` and ``wheels`` in
    ``blender_manifest.toml`` (sorted) and builds from the repository root; for a subset it leaves the
@@ -68,6 +69,9 @@ WHEEL_SETS = (
         "windows-x64": "win_amd64",
     }),
 )
+# The scan readers (headadapt_addon/core/readers.py): pure Python on numpy, one wheel for every zip.
+# plyfile 1.1.4 and later require numpy 2 (Blender 4.2 to 5.0 ship numpy 1.26).
+PURE_WHEELS = (("plyfile", "1.1.3"), ("trimesh", "4.5.3"))
 PIP_PLATFORM = WHEEL_SETS[0].pip_platform
 assert all(set(ws.pip_platform) == set(PIP_PLATFORM) for ws in WHEEL_SETS)
 ALL_PLATFORMS = tuple(sorted(PIP_PLATFORM))
@@ -141,9 +145,26 @@ def fetch_wheel(platform, cache, wheel_set):
     return cached[0]
 
 
+def fetch_pure_wheel(name, version, cache):
+    """The cached ``NAME-VERSION-py3-none-any.whl``, downloading it with pip when absent."""
+    cache_dir = cache / "py3-none-any"
+    wheel = cache_dir / f"{name}-{version}-py3-none-any.whl"
+    if wheel.is_file():
+        return wheel
+    cache_dir.mkdir(parents=True, exist_ok=True)
+    print(f"fetching {name}=={version} (pure Python, every platform) into {cache_dir}", flush=True)
+    result = subprocess.run([sys.executable, "-m", "pip", "download", "--quiet", "--only-binary=:all:", "--no-deps",
+                             "--dest", str(cache_dir), f"{name}=={version}"], capture_output=True, text=True)
+    if result.returncode != 0 or not wheel.is_file():
+        raise BuildError(f"pip could not fetch {name}=={version}:\n{result.stdout}{result.stderr}".rstrip())
+    return wheel
+
+
 def fetch_wheels(platforms, cache):
-    """Every platform's wheels, one per Python in ``WHEEL_SETS``: ``{platform: [wheel, ...]}``."""
-    return {platform: [fetch_wheel(platform, cache, ws) for ws in WHEEL_SETS] for platform in platforms}
+    """Every platform's wheels, one scipy per Python in ``WHEEL_SETS`` and the ``PURE_WHEELS``:
+    ``{platform: [wheel, ...]}``."""
+    pure = [fetch_pure_wheel(name, version, cache) for name, version in PURE_WHEELS]
+    return {platform: [fetch_wheel(platform, cache, ws) for ws in WHEEL_SETS] + pure for platform in platforms}
 
 
 def sync_wheels(wheels, keep_names):
@@ -203,7 +224,7 @@ def build(out, platforms, cache):
     manifest = tomllib.loads(manifest_text)
     ext_id, version = manifest["id"], manifest["version"]
 
-    wheels = [wheel for per_platform in fetch_wheels(platforms, cache).values() for wheel in per_platform]
+    wheels = sorted({wheel for per_platform in fetch_wheels(platforms, cache).values() for wheel in per_platform})
     full = set(platforms) == set(ALL_PLATFORMS)
 
     # ./wheels/ keeps what the tracked manifest lists plus what this build ships.

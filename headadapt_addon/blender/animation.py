@@ -1,5 +1,5 @@
 """Blender side of the expressions: read a head's anatomy from its objects, write shape keys, the
-preview action and .fap keyframes. The simulation itself is core.bake / core.physics."""
+preview action and .fap keyframes. The simulation itself is core.skin (build, bake)."""
 
 import json
 

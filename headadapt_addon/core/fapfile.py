@@ -5,6 +5,8 @@ data line `frame value ...` with the values of the masked-in FAPs in FAP order. 
 files FAP 1 (viseme) takes 4 values (select1, select2, blend, def) and FAP 2 (expression) 6
 (select1, intensity1, select2, intensity2, init_face, def); files that give one value for each
 are read too (decided per line by counting). Errors name the file and the line; writes are atomic.
+The file's size is checked before it is read, the header's frame count against the lines the file
+holds before any array is sized from it.
 """
 
 from __future__ import annotations
@@ -15,7 +17,7 @@ import pathlib
 
 import numpy as np
 
-from . import mpeg4
+from . import limits, mpeg4
 from .exceptions import FileFormatError, HeadAdaptError
 from .meshio import write_atomic
 
@@ -46,47 +48,51 @@ def _error(path, line_no, what):
     return FileFormatError(f"{path}, line {line_no}: {what}")
 
 
+def _shown(text):
+    """repr of a token from the file, cut to 40 characters (a line may hold megabytes)."""
+    return repr(text) if len(text) <= 40 else repr(text[:37] + "...")
+
+
 def _number(tok, path, line_no):
     try:
         value = float(tok)
     except ValueError:
         value = math.nan
     if not math.isfinite(value):
-        raise _error(path, line_no, f"{tok!r} is not a number")
+        raise _error(path, line_no, f"{_shown(tok)} is not a number")
     return value
 
 
 def read_fap(path):
     """Read a .fap file into a FapAnimation (values in FAPUs); FileFormatError names the file and line."""
     path = pathlib.Path(path)
-    try:
-        text = path.read_text(errors="replace")
-    except OSError as exc:
-        raise FileFormatError(f"cannot read {path}: {exc.strerror or exc}") from exc
+    text = limits.read_capped(path, limits.FAP_MAX_BYTES, "FAP file").decode("utf-8", errors="replace")
     lines = [(no, ln.split()) for no, ln in enumerate(text.splitlines(), 1) if ln.strip() and not ln.lstrip().startswith("#")]
     head_no, head = lines[0] if lines else (1, [])
     if len(head) < 4:
-        raise _error(path, head_no, f"bad header {' '.join(head)!r}, expected '2.1 <name> <frame rate> <frames>'")
+        raise _error(path, head_no, f"bad header {_shown(' '.join(head))}, expected '2.1 <name> <frame rate> <frames>'")
     _number(head[0], path, head_no)
     fps, n_frames = _number(head[-2], path, head_no), _number(head[-1], path, head_no)
     if fps <= 0:
         raise _error(path, head_no, f"frame rate {fps:g} must be positive")
     if n_frames < 0 or not n_frames.is_integer():
-        raise _error(path, head_no, f"number of frames {head[-1]!r} is not a whole number >= 0")
+        raise _error(path, head_no, f"number of frames {_shown(head[-1])} is not a whole number >= 0")
     n, body = int(n_frames), lines[1:]
+    if len(body) < 2 * n:
+        raise FileFormatError(f"{path}: the header (line {head_no}) says {n} frames, the file holds only {len(body) // 2}")
     frames, values = np.zeros(n, np.int64), np.full((n, N + 1), np.nan)
     visemes, expressions = np.full((n, 4), np.nan), np.full((n, 6), np.nan)
-    for f in range(min(n, len(body) // 2)):
+    for f in range(n):
         (mask_no, mask), (data_no, data) = body[2 * f], body[2 * f + 1]
         if len(mask) != N:
             raise _error(path, mask_no, f"the mask of frame {f + 1} has {len(mask)} entries, expected {N} bits")
         bad = [t for t in mask if t not in ("0", "1")]
         if bad:
-            raise _error(path, mask_no, f"mask entry {bad[0]!r} is not 0 or 1")
+            raise _error(path, mask_no, f"mask entry {_shown(bad[0])} is not 0 or 1")
         bits = np.array(mask) == "1"
         nums = [_number(t, path, data_no) for t in data]
-        if not nums[0].is_integer():
-            raise _error(path, data_no, f"frame number {data[0]!r} is not a whole number")
+        if not nums[0].is_integer() or abs(nums[0]) >= 2 ** 63:
+            raise _error(path, data_no, f"frame number {_shown(data[0])} is not a whole number of 64 bits")
         k, got = int(bits.sum()), len(nums) - 1
         full = k + 3 * bits[0] + 5 * bits[1]
         if got not in (k, full):
@@ -100,8 +106,6 @@ def read_fap(path):
                 values[f, fap], pos = vals[pos], pos + width
         values[f, np.flatnonzero(bits[2:]) + 3] = vals[pos:]
         frames[f] = int(nums[0])
-    if len(body) < 2 * n:
-        raise FileFormatError(f"{path}: the header (line {head_no}) says {n} frames, the file holds only {len(body) // 2}")
     if len(body) > 2 * n:
         raise _error(path, body[2 * n][0], f"more lines than the header's {n} frames")
     return FapAnimation(" ".join(head[1:-2]), fps, frames, values, visemes, expressions)

@@ -1,6 +1,6 @@
 """MPEG-4 drive as data: FAPs, expressions and visemes -> skin-model controls and rigid-part motions.
 
-A control is one of core.physics' (muscles, sphincters, jaw, lids, cheek puff, lip push/funnel,
+A control is one of core.skin's (muscles, sphincters, jaw, lids, cheek puff, lip push/funnel,
 depressor septi), with an activation; 1 is about the amplitude of the matching ARKit face unit.
 FAPs the skin cannot express move rigid parts instead (eyeballs, tongue) or the whole head
 (head_pitch/yaw/roll: the root object's rotation). Not expressed: pupil dilation (29-30, the

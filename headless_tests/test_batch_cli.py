@@ -1,0 +1,163 @@
+"""The batch command line's contract: no command line overwrites its own inputs; existing results are
+replaced only with --overwrite; a failed run leaves report.json "failed" and no result beside it;
+bad input, a full disk or an unwritable folder exit 2 with one line naming the file; a bug exits 1
+with its traceback in the log and one line naming the scan."""
+import hashlib
+import json
+import os
+import shutil
+import subprocess
+import sys
+
+import pytest
+
+from headadapt_addon.batch import ROOT, SAMPLE_DIR
+
+
+def batch(*args, env=None, timeout=300):
+    return subprocess.run([sys.executable, "-m", "headadapt_addon.batch", *map(str, args)], capture_output=True,
+                          text=True, timeout=timeout, cwd=ROOT, env=env)
+
+
+def one_error_line(proc):
+    """The single stderr line of a refused or bad-input run (exit 2)."""
+    assert proc.returncode == 2, proc.stdout + proc.stderr
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("headadapt: error: ") and "Traceback" not in proc.stderr, lines
+    return lines[0]
+
+
+def digest(path):
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+@pytest.fixture
+def inputs(tmp_path):
+    """A copy of the sample scan and its landmarks in tmp_path/in."""
+    (tmp_path / "in").mkdir()
+    shutil.copy(SAMPLE_DIR / "scan.ply", tmp_path / "in" / "scan.ply")
+    shutil.copy(SAMPLE_DIR / "landmarks.json", tmp_path / "in" / "landmarks.json")
+    return tmp_path / "in" / "scan.ply", tmp_path / "in" / "landmarks.json"
+
+
+def _hard_link(src, dst):
+    dst.parent.mkdir(parents=True, exist_ok=True)
+    os.link(src, dst)
+
+
+def _sym_link(src, dst):
+    dst.parent.mkdir(parents=True, exist_ok=True)
+    dst.symlink_to(src)
+
+
+# Each case: how to lay the inputs out, the command line, the path the refusal names.
+CASES = {
+    "blend is the scan": (None, lambda s, m, o: ["adapt", "--scan", s, "--landmarks", m, "--out", o, "--blend", s], "s"),
+    "blend is the landmarks": (None, lambda s, m, o: ["adapt", "--scan", s, "--landmarks", m, "--out", o,
+                                                      "--blend", m], "m"),
+    "scan named adapted_head.obj in --out": (
+        "scan_in_out", lambda s, m, o: ["adapt", "--scan", o / "adapted_head.obj", "--landmarks", m, "--out", o],
+        "adapted_head.obj"),
+    "landmarks named report.json in --out": (
+        "marks_in_out", lambda s, m, o: ["adapt", "--scan", s, "--landmarks", o / "report.json", "--out", o],
+        "report.json"),
+    "out holds a hard link to the scan": (
+        "hard_link", lambda s, m, o: ["adapt", "--scan", s, "--landmarks", m, "--out", o], "adapted_head.obj"),
+    "out holds a symbolic link to the scan": (
+        "sym_link", lambda s, m, o: ["adapt", "--scan", s, "--landmarks", m, "--out", o], "adapted_head.obj"),
+    "blend is the report": (None, lambda s, m, o: ["adapt", "--scan", s, "--landmarks", m, "--out", o,
+                                                   "--blend", o / "report.json"], "report.json"),
+    "folder writes summary.json over a landmark file": (
+        "summary_scan", lambda s, m, o: ["folder", "--folder", s.parent, "--out", s.parent], "summary.json"),
+}
+
+
+@pytest.mark.parametrize("case", list(CASES))
+def test_no_command_line_overwrites_its_inputs(tmp_path, inputs, case):
+    scan, marks = inputs
+    out = tmp_path / "out"
+    layout, argv, named = CASES[case]
+    if layout == "scan_in_out":
+        from headadapt_addon.core import meshio
+        meshio.write_obj(out / "adapted_head.obj", *meshio.read_mesh(scan))
+    elif layout == "marks_in_out":
+        out.mkdir()
+        shutil.copy(marks, out / "report.json")
+    elif layout == "hard_link":
+        _hard_link(scan, out / "adapted_head.obj")
+    elif layout == "sym_link":
+        _sym_link(scan, out / "adapted_head.obj")
+    elif layout == "summary_scan":
+        scan.rename(scan.with_name("summary.ply"))
+        marks.rename(marks.with_name("summary.json"))
+        scan, marks = scan.with_name("summary.ply"), marks.with_name("summary.json")
+    before = {p: digest(p) for p in [*tmp_path.rglob("*")] if p.is_file() and not p.is_symlink()}
+    proc = batch(*argv(scan, marks, out), "--overwrite")      # refused even with --overwrite
+    line = one_error_line(proc)
+    assert "refusing to write" in line and {"s": str(scan), "m": str(marks)}.get(named, named) in line, line
+    after = {p: digest(p) for p in [*tmp_path.rglob("*")] if p.is_file() and not p.is_symlink()}
+    assert after == before                                     # nothing written, nothing changed
+
+
+def test_results_are_replaced_only_with_overwrite_and_a_failed_rerun_leaves_no_stale_result(tmp_path, inputs):
+    scan, marks = inputs
+    out = tmp_path / "out"
+    assert batch("adapt", "--scan", scan, "--landmarks", marks, "--out", out, "--levels", "1").returncode == 0
+    report = json.loads((out / "report.json").read_text())
+    assert report["status"] == "done"
+    assert report["inputs_sha256"] == {"scan": digest(scan), "landmarks": digest(marks)}
+    kept = {p.name: digest(p) for p in out.iterdir()}
+    line = one_error_line(batch("adapt", "--scan", scan, "--landmarks", marks, "--out", out, "--levels", "1"))
+    assert f"refusing to replace {out / 'adapted_head.obj'}" in line and "--overwrite" in line
+    assert {p.name: digest(p) for p in out.iterdir()} == kept
+    # the scan goes bad; the rerun with --overwrite fails and takes the old result with it
+    scan.write_bytes(scan.read_bytes()[:5000])
+    line = one_error_line(batch("adapt", "--scan", scan, "--landmarks", marks, "--out", out, "--overwrite"))
+    assert str(scan) in line
+    assert sorted(p.name for p in out.iterdir()) == ["report.json"]
+    failed = json.loads((out / "report.json").read_text())
+    assert failed["status"] == "failed" and failed["error"] == line.removeprefix("headadapt: error: ")
+
+
+def test_a_full_disk_exits_2_naming_the_file(tmp_path, inputs):
+    """A file-size limit of 64 kB stands in for a full disk: report.json ("running") fits, the OBJ not."""
+    scan, marks = inputs
+    out = tmp_path / "out"
+    code = ("import resource, signal, sys\n"
+            "signal.signal(signal.SIGXFSZ, signal.SIG_IGN)\n"
+            "resource.setrlimit(resource.RLIMIT_FSIZE, (65536, resource.RLIM_INFINITY))\n"
+            "from headadapt_addon.batch import main\n"
+            f"sys.exit(main(['adapt', '--scan', {str(scan)!r}, '--landmarks', {str(marks)!r}, '--out', {str(out)!r},"
+            " '--levels', '0']))\n")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, timeout=300)
+    line = one_error_line(proc)
+    assert line == f"headadapt: error: cannot write {out / 'adapted_head.obj'}: File too large"
+    assert sorted(p.name for p in out.iterdir()) == ["report.json"]
+    assert json.loads((out / "report.json").read_text())["status"] == "failed"
+
+
+def test_an_unwritable_output_folder_exits_2_naming_it(tmp_path, inputs):
+    scan, marks = inputs
+    (tmp_path / "file").write_text("")
+    line = one_error_line(batch("adapt", "--scan", scan, "--landmarks", marks, "--out", tmp_path / "file" / "out"))
+    assert f"cannot write {tmp_path / 'file' / 'out' / 'report.json'}" in line
+
+
+def test_a_bug_exits_1_with_the_traceback_in_the_log_and_the_scan_named(tmp_path, inputs):
+    scan, marks = inputs
+    code = ("import sys\n"
+            "import headadapt_addon.core.adapt as core_adapt\n"
+            "def broken(*args, **kwargs):\n"
+            "    raise ZeroDivisionError('a bug')\n"
+            "core_adapt.adapt = broken\n"
+            "from headadapt_addon.batch import main\n"
+            f"sys.exit(main(['adapt', '--scan', {str(scan)!r}, '--landmarks', {str(marks)!r}, "
+            f"'--out', {str(tmp_path / 'out')!r}]))\n")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, timeout=300)
+    assert proc.returncode == 1, proc.stderr
+    assert "Traceback" in proc.stderr and "ZeroDivisionError: a bug" in proc.stderr
+    assert proc.stderr.strip().splitlines()[-1] == (f"headadapt: internal error while adapting {scan} "
+                                                    "(the traceback above); please report it")
+    report = json.loads((tmp_path / "out" / "report.json").read_text())
+    assert report["status"] == "failed" and "ZeroDivisionError" in report["traceback"]
+    assert not (tmp_path / "out" / "adapted_head.obj").exists()
