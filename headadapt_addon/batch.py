@@ -40,7 +40,7 @@ import uuid
 
 if __name__ == "__main__" and not __package__:      # run as a script (blender --python batch.py)
     sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
-    __package__ = "headadapt_addon"                  # noqa: A001
+    __package__ = "headadapt_addon"
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 SAMPLE_DIR = ROOT / "assets" / "sample_scan"
@@ -50,13 +50,16 @@ EXIT_OK, EXIT_BUG, EXIT_BAD_INPUT, EXIT_UNTRUSTWORTHY, EXIT_SCAN_FAILED, EXIT_IN
 
 def build_parser():
     """The command-line interface of the batch job."""
+    from .core.adapt.options import AdaptOptions
+
     parser = argparse.ArgumentParser(prog="headadapt", description=__doc__.split("\n\n")[0],
                                      epilog=__doc__.split("\n\n")[-1],      # the exit codes
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = parser.add_subparsers(dest="command", required=True)
 
     def common(p):
-        p.add_argument("--levels", type=int, default=4, help="maximum number of levels after level 0 (default 4)")
+        p.add_argument("--levels", type=int, default=AdaptOptions.max_levels,
+                       help="maximum number of levels after level 0 (default %(default)s)")
         p.add_argument("--calibration", choices=("auto", "paper", "umeyama"), default="auto")
         p.add_argument("--keep-flagged", action="store_true",
                        help="keep FDPs flagged as wrongly clicked (default: drop them and say so)")
@@ -163,7 +166,7 @@ def result_paths(out_dir: os.PathLike | str, blend: os.PathLike | str | None = N
     return paths
 
 
-def run_adapt(scan_path, landmarks_path, out_dir, levels=4, calibration="auto", keep_flagged=False,
+def run_adapt(scan_path, landmarks_path, out_dir, levels=None, calibration="auto", keep_flagged=False,
               blend=None, overwrite=False, run_id=None, log=print, warn=_stderr):
     """Adapt the template onto one scan file; write adapted_head.obj (+ the .blend) and report.json last,
     all atomically; return the report. Progress goes to log, one line per warning to warn;
@@ -185,8 +188,8 @@ def run_adapt(scan_path, landmarks_path, out_dir, levels=4, calibration="auto", 
               "landmarks": str(landmarks_path)}
     try:
         verts, tris = meshio.read_mesh(scan_path)
-        points = meshio.read_landmarks(landmarks_path)
-        markers = meshio.read_landmarks.last_meta.get("markers")
+        points, meta = meshio.read_landmark_file(landmarks_path)
+        markers = meta.get("markers")
         try:
             record["inputs_sha256"] = {"scan": file_sha256(scan_path), "landmarks": file_sha256(landmarks_path)}
         except OSError as exc:
@@ -220,12 +223,13 @@ def run_adapt(scan_path, landmarks_path, out_dir, levels=4, calibration="auto", 
 def _adapt_and_write(record, verts, tris, points, markers, outputs, levels, calibration, keep_flagged, t0, log,
                      warn):
     from .core import meshio
-    from .core.adapt import outcome as outcome_text
     from .core.adapt import AdaptOptions, adapt
+    from .core.adapt import outcome as outcome_text
     from .core.template import load_template
 
     tpl = load_template()
-    options = AdaptOptions(max_levels=levels, calibration=calibration, drop_flagged=not keep_flagged)
+    options = AdaptOptions(max_levels=AdaptOptions.max_levels if levels is None else levels,
+                           calibration=calibration, drop_flagged=not keep_flagged)
     log(f"headadapt: {pathlib.Path(record['scan']).name}: {len(verts):,} vertices, {len(tris):,} triangles, "
         f"{len(points)} FDPs")
     result = adapt(tpl, verts, tris, points, options, markers=markers,
@@ -436,7 +440,7 @@ def _adapt_exit_code(scan, landmarks, out, levels, calibration, keep_flagged, bl
     return EXIT_OK if report["outcome"]["ok"] else EXIT_UNTRUSTWORTHY
 
 
-def run_folder(folder, out, jobs=0, levels=4, calibration="auto", keep_flagged=False, blend=False, overwrite=False,
+def run_folder(folder, out, jobs=0, levels=None, calibration="auto", keep_flagged=False, blend=False, overwrite=False,
                timeout=900.0, memory_gb=8.0, scheduler=None, log=print, warn=_stderr):
     """Adapt every scan + landmarks pair of a folder, each scan in its own process (local threads start
     them, or the tasks of a Dask cluster at `scheduler`); return the summary, also in OUT/summary.json,

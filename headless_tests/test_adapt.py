@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from headadapt_addon.core import adapt as core_adapt
-from headadapt_addon.core.mesh import geometry
 from headadapt_addon.core.exceptions import HeadAdaptError
+from headadapt_addon.core.mesh import geometry
 from headadapt_addon.core.template import load_template
 
 MM = 1000.0
@@ -226,8 +226,8 @@ def fringe_scan(folder, wrong_click=True):
     from headadapt_addon.core import meshio
 
     v, t = meshio.read_mesh(SAMPLE_DIR / "scan.ply")                 # mm
-    pts = meshio.read_landmarks(SAMPLE_DIR / "landmarks.json")
-    markers = meshio.read_landmarks.last_meta["markers"]
+    pts, meta = meshio.read_landmark_file(SAMPLE_DIR / "landmarks.json")
+    markers = meta["markers"]
     n = geometry.vertex_normals(v, t)
     c = 0.5 * (0.5 * (pts["4.3"] + pts["4.4"]) + pts["11.1"])       # mid-forehead: brow tops to hairline
     c = v[np.argmin(np.linalg.norm(v - c, axis=1))]

@@ -23,6 +23,7 @@ def tpl():
 def _scan_object(tpl, scale=1000.0, name="scan"):
     """The template skin as a stand-in scan, in mm, moved away from the origin."""
     import bpy
+
     from headadapt_addon.blender import bridge
 
     obj = bpy.data.objects.new(name, bridge.new_mesh(name, tpl.skin.verts * scale, tpl.skin.tris))
@@ -67,6 +68,7 @@ def test_mirror_suggestion_lands_on_the_partner(addon, tpl):
 
 def test_landmarks_survive_save_and_reload(addon, tpl, tmp_path):
     import bpy
+
     from headadapt_addon.blender import landmarks
 
     scan = _scan_object(tpl)
@@ -100,6 +102,7 @@ class _Recorder:
 
 def test_every_panel_draws_on_empty_and_full_scenes(addon, tpl):
     import bpy
+
     from headadapt_addon.blender import landmarks
     from headadapt_addon.ui import panels as ui
 
@@ -127,6 +130,7 @@ def _report_labels(rep):
     import json
 
     import bpy
+
     from headadapt_addon.ui import panels as ui
 
     bpy.context.scene.headadapt.report_json = json.dumps(rep)

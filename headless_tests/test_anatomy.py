@@ -2,8 +2,7 @@
 import numpy as np
 import pytest
 
-from headadapt_addon.core import adapt
-from headadapt_addon.core import anatomy
+from headadapt_addon.core import adapt, anatomy
 from headadapt_addon.core.mesh import geometry, spatial
 from headadapt_addon.core.mesh.inside import winding_numbers
 from headadapt_addon.core.template import load_template
@@ -82,7 +81,7 @@ def test_eyes_sit_in_their_sockets(tpl, transferred):
 
 
 def test_rigid_parts_stay_rigid_and_fapus_are_remeasured(tpl, transferred):
-    for head, _, ana in transferred:
+    for _head, _, ana in transferred:
         for name, sim in ana.rigid.items():
             v0, v1 = tpl.parts[name].verts, ana.parts[name]
             d0 = np.linalg.norm(v0[1:] - v0[0], axis=1)

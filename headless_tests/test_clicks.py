@@ -3,8 +3,7 @@ never dropped, a slip of the hand is, swapped left/right labels are put right an
 import numpy as np
 import pytest
 
-from headadapt_addon.core import adapt
-from headadapt_addon.core import mpeg4
+from headadapt_addon.core import adapt, mpeg4
 from headadapt_addon.core.mesh import spatial
 from headadapt_addon.core.template import load_template
 
@@ -47,7 +46,7 @@ def test_no_right_click_is_dropped_on_fifty_heads(tpl, testheads):
 def test_a_click_20_mm_off_is_found_and_dropped(tpl, testheads, seed):
     head = _light(testheads, seed)
     clicks = dict(head.clicks_8)
-    q = spatial.MeshQuery(head.scan_verts, head.scan_tris)
+    q = spatial.MeshQuery(head.scan_verts, head.scan_tris, backend=testheads.BACKEND)
     unit = head.similarity[0]
     rng = np.random.default_rng(seed)
     name = ["8.3", "3.12", "2.10"][seed % 3]

@@ -35,7 +35,7 @@ SOURCE_GLOBS = ("blender_manifest.toml", "__init__.py", "headadapt_addon/**/*", 
                 "tools/build_extension.py")
 
 # The scipy the zip bundles for the Python running these tests (None: this Python has no wheel set).
-THIS_PYTHON = "%d.%d" % sys.version_info[:2]
+THIS_PYTHON = "{}.{}".format(*sys.version_info[:2])
 WHEEL_SET = next((ws for ws in build_extension.WHEEL_SETS if ws.python == THIS_PYTHON), None)
 
 INSTALL = """
@@ -238,7 +238,7 @@ def test_linux_zip_ships_the_addon_the_template_and_the_linux_wheel_for_each_pyt
     dev_only = [name for name in names if name.split("/")[0] in {"headless_tests", "tools", "docs", ".venv", ".ci"}
                 or name.startswith(".venv")
                 or name in {"assets/build_template.py", "ha", "requirements.txt", "requirements-blender52.txt",
-                            "pytest.ini"}
+                            "pyproject.toml"}
                 or "__pycache__" in name or name.endswith(".pyc")]
     assert dev_only == []
 

@@ -6,7 +6,7 @@ from headadapt_addon.core import mpeg4
 from headadapt_addon.core.exceptions import FileFormatError, HeadAdaptError
 from headadapt_addon.core.fapfile import FapAnimation, fap_column, read_fap, write_fap
 
-MASK = lambda *on: " ".join("1" if i in on else "0" for i in range(1, 69))   # noqa: E731
+MASK = lambda *on: " ".join("1" if i in on else "0" for i in range(1, 69))
 
 
 def _random_anim(n, rng):

@@ -2,9 +2,9 @@
 replaced by huge, negative or non-finite ones, bytes flipped or inserted) or random bytes. Each input
 either reads or ends in HeadAdapt's own error (HeadAdaptError, exit 2 in the batch job), never
 another exception, within 5 s and 500 MB."""
-import tempfile
 import pathlib
 import re
+import tempfile
 import time
 import tracemalloc
 
@@ -12,11 +12,12 @@ import numpy as np
 import pytest
 
 hypothesis = pytest.importorskip("hypothesis")
-from hypothesis import HealthCheck, given, settings, strategies as st  # noqa: E402
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
-from headadapt_addon.core import meshio  # noqa: E402
-from headadapt_addon.core.exceptions import HeadAdaptError  # noqa: E402
-from headadapt_addon.core.fapfile import read_fap  # noqa: E402
+from headadapt_addon.core import meshio
+from headadapt_addon.core.exceptions import HeadAdaptError
+from headadapt_addon.core.fapfile import read_fap
 
 SECONDS, BYTES = 5.0, 500 * 2 ** 20
 FUZZ = settings(max_examples=120, deadline=None, derandomize=True, database=None,
@@ -41,8 +42,8 @@ def _ply(fmt):
     return header + body
 
 
-OBJ = ("# seed\nv 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nv 0.5 0.5 1\nvt 0 0\nvn 0 0 1\nusemtl skin\n"
-       "f 1/1/1 2/1/1 3/1/1 4/1/1\nf 1 2 5\nf -4 -3 -1\ng back\nf 3//1 4//1 5//1\nf 4 1 5\n").encode()
+OBJ = (b"# seed\nv 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nv 0.5 0.5 1\nvt 0 0\nvn 0 0 1\nusemtl skin\n"
+       b"f 1/1/1 2/1/1 3/1/1 4/1/1\nf 1 2 5\nf -4 -3 -1\ng back\nf 3//1 4//1 5//1\nf 4 1 5\n")
 TRIS = V[[[0, 1, 2], [0, 2, 3], [0, 1, 4], [1, 2, 4]]]
 STL_BIN = (b"\0" * 80 + np.uint32(len(TRIS)).tobytes()
            + b"".join(np.zeros(3, "<f4").tobytes() + t.astype("<f4").tobytes() + b"\0\0" for t in TRIS))

@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 import headadapt_addon
-from headadapt_addon.core import meshio
 from headadapt_addon.batch import SAMPLE_DIR
+from headadapt_addon.core import meshio
 
 
 @pytest.fixture
@@ -28,6 +28,7 @@ def ui_scene():
 
 def _add_scan(name="scan", with_faces=True, path=SAMPLE_DIR / "scan.ply"):
     import bpy
+
     from headadapt_addon.blender import bridge
 
     v, t = meshio.read_mesh(path)
@@ -46,6 +47,7 @@ def _verts(obj):
 
 def test_the_whole_workflow_runs_through_bpy_ops(ui_scene, capfd):
     import bpy
+
     from headadapt_addon.blender import landmarks
 
     with bpy.context.temp_override(**ui_scene):
@@ -100,8 +102,8 @@ def test_adapt_warns_when_the_fit_cannot_be_trusted_and_the_report_panel_says_wh
     untrustworthy fit of test_adapt.fringe_scan): the operator finishes (the result is there to
     look at) but reports a WARNING naming why, and the Report panel shows the outcome and each warning."""
     import bpy
-    from headadapt_addon.ui import panels as ui
 
+    from headadapt_addon.ui import panels as ui
     from headless_tests.test_adapt import fringe_scan
     from headless_tests.test_addon_ui import _Recorder
 
@@ -154,6 +156,7 @@ def test_undo_restores_the_scene_after_adapt(ui_scene):
 
 def test_bad_input_gets_a_clear_report_and_changes_nothing(ui_scene, tmp_path):
     import bpy
+
     from headadapt_addon.blender import landmarks
 
     with bpy.context.temp_override(**ui_scene):

@@ -9,8 +9,7 @@ import warnings
 import numpy as np
 import pytest
 
-from headadapt_addon.core import adapt
-from headadapt_addon.core import anatomy, meshio
+from headadapt_addon.core import adapt, anatomy, meshio
 from headadapt_addon.core.mesh import geometry
 from headadapt_addon.core.mesh.inside import winding_numbers
 from headadapt_addon.core.template import load_template

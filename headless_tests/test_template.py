@@ -13,6 +13,7 @@ from headadapt_addon.core import mpeg4
 from headadapt_addon.core.mesh.inside import winding_numbers
 from headadapt_addon.core.template import TEMPLATE_DIR, load_template
 
+
 @pytest.fixture(scope="module")
 def tpl():
     return load_template()

@@ -12,6 +12,7 @@ def tpl():
 
 def test_template_loads_as_objects_under_one_root(clean_scene, tpl):
     import bpy
+
     from headadapt_addon.blender import bridge, scene
 
     root = scene.add_template(tpl)
@@ -50,6 +51,7 @@ def test_template_loads_as_objects_under_one_root(clean_scene, tpl):
 
 def test_rotating_the_jaw_pivot_opens_the_mouth(clean_scene, tpl):
     import bpy
+
     from headadapt_addon.blender import bridge, scene
 
     root = scene.add_template(tpl)

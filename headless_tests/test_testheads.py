@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from headadapt_addon.core.adapt import calibration
 from headadapt_addon.core import mpeg4
+from headadapt_addon.core.adapt import calibration
 from headadapt_addon.core.mesh import spatial
 
 MM = 1e-3
@@ -65,7 +65,7 @@ def test_a_seed_makes_the_same_head(testheads, heads):
 
 def test_no_surface_a_scanner_cannot_see(tpl, clean_head):
     head = clean_head
-    q = spatial.MeshQuery(head.scan_verts, head.scan_tris)
+    q = spatial.MeshQuery(head.scan_verts, head.scan_tris, backend="bvh")
     d = q.closest_points(head.true_template)[2] / head.similarity[0]
     # the mouth's inside and the eye sockets beyond their own edge (vertices of a quad outside the
     # region are the lips' or lids' edge, which is seen)
@@ -93,7 +93,7 @@ def test_the_eyeballs_front_is_on_the_scan_and_its_back_is_not(tpl, clean_head):
         front, back = ev[:, 1] < centre[1] - 0.005, ev[:, 1] > centre[1]   # the template looks along -y
         assert (d[front] < 1e-6).sum() >= 5, (eye, (d[front] < 1e-6).sum())
         assert np.all(d[back] > 1 * MM), eye
-        q = spatial.MeshQuery(head.scan_verts, head.scan_tris)
+        q = spatial.MeshQuery(head.scan_verts, head.scan_tris, backend="bvh")
         assert q.closest_points(head.true_fdps[pupil][None])[2][0] / s < 0.5 * MM, pupil
         assert pupil in head.fdp_clicks
 
@@ -101,7 +101,7 @@ def test_the_eyeballs_front_is_on_the_scan_and_its_back_is_not(tpl, clean_head):
 def test_big_holes_under_the_chin_in_a_cheek_and_at_the_back(heads):
     for head in heads:
         s = head.similarity[0]
-        q = spatial.MeshQuery(head.scan_verts, head.scan_tris)
+        q = spatial.MeshQuery(head.scan_verts, head.scan_tris, backend="bvh")
         kinds = {h["kind"].split("_")[0]: h for h in head.holes}
         sizes = {"under": (15, 20), "cheek": (10, 15), "back": (25, 40)}
         for kind, (lo, hi) in sizes.items():
@@ -139,7 +139,7 @@ def test_clicks_are_never_at_a_template_vertex(testheads, heads):
         d, _ = tree.query(np.array(list(head.fdp_clicks.values())))
         assert d.min() / s > 0.05 * MM, d.min() / s / MM
         # and they are on the scan
-        q = spatial.MeshQuery(head.scan_verts, head.scan_tris)
+        q = spatial.MeshQuery(head.scan_verts, head.scan_tris, backend="bvh")
         assert q.closest_points(np.array(list(head.fdp_clicks.values())))[2].max() / s < 1e-6
 
 

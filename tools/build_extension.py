@@ -199,7 +199,7 @@ def manifest_with(text, platforms, wheel_names):
     ):
         pattern = re.compile(rf"^{key}\s*=\s*\[[^\]]*\]\s*?\n", re.MULTILINE)
         if pattern.search(text):
-            text = pattern.sub(lambda _match: block, text, count=1)
+            text = pattern.sub(lambda _match, block=block: block, text, count=1)
         else:
             table = re.search(r"^\[", text, re.MULTILINE)
             at = table.start() if table else len(text)

@@ -16,8 +16,7 @@ ROOT = pathlib.Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from headadapt_addon.core import adapt
-from headadapt_addon.core import anatomy, meshio  # noqa: E402
+from headadapt_addon.core import adapt, anatomy, meshio  # noqa: E402
 from headadapt_addon.core.mesh.spatial import MeshQuery  # noqa: E402
 
 CLICKS = ROOT / "headless_tests" / "data" / "headsq_ct_fdps.json"

@@ -118,7 +118,7 @@ def render_demo(out, tmp):
     """Sample scan (grey) beside the adapted head coloured by its distance to the scan."""
     from headadapt_addon.blender import blendout, bridge
     from headadapt_addon.core import meshio
-    from headadapt_addon.core.adapt.pipeline import adapt
+    from headadapt_addon.core.adapt import adapt
 
     tpl = load_template()
     sample = ROOT / "assets" / "sample_scan"

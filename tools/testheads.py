@@ -59,13 +59,15 @@ for p in (ROOT, ROOT / "assets"):
     if str(p) not in sys.path:
         sys.path.insert(0, str(p))
 
-from headadapt_addon.core.mesh import geometry, spatial
 from headadapt_addon.core import meshio, mpeg4  # noqa: E402
+from headadapt_addon.core.mesh import geometry, spatial  # noqa: E402
 from headadapt_addon.core.template import load_template  # noqa: E402
 
+# Spatial queries of the generator (visibility rays, snapping the clicks): Blender's BVH, which made
+# every published head; the bpy module is needed here anyway (remeshing).
+BACKEND = "bvh"
 TARGET_CATEGORIES = ("head", "nose", "mouth", "chin", "cheek", "ears", "eyes", "forehead", "eyebrows", "neck")
 RACES = ("african", "asian", "caucasian")
-# regions the scanner never sees on the template: only for tests and figures (the cut is by rays)
 FACE_REGIONS = ("forehead", "brow_l", "brow_r", "eyelid_l", "eyelid_r", "nose", "cheek_l", "cheek_r",
                 "upper_lip", "lower_lip", "chin_jaw")
 SCANNED_PARTS = ("skin", "eye_l", "eye_r")                  # what the scan's surface is made of
@@ -138,7 +140,7 @@ def _target_names(src):
     return by_cat, macro
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _universal_names():
     """Non-empty universal (gender-age-muscle-weight) macro targets of adults."""
     src = _source()
@@ -257,7 +259,7 @@ def seen_triangles(verts, tris, positions, targets=None, tol=SEEN_TOLERANCE, min
     occlude; only the triangles in targets (bool mask, default all) are tested. Outward normals by
     the right-hand rule."""
     verts, tris = np.asarray(verts, float), np.asarray(tris, np.int64)
-    query = spatial.MeshQuery(verts, tris)
+    query = spatial.MeshQuery(verts, tris, backend=BACKEND)
     cent = verts[tris].mean(axis=1)
     normal = geometry.face_normals(verts, tris)
     seen = np.zeros(len(tris), bool)
@@ -368,7 +370,7 @@ def _legacy_head(seed, *, n_targets=8, subdiv=2, decimate=0.6, holes=2, noise_mm
     remap = np.full(len(sv), -1)
     remap[used_v] = np.arange(len(used_v))
     sv, st = sv[used_v], remap[st]
-    clean = spatial.MeshQuery(sv, st)
+    clean = spatial.MeshQuery(sv, st, backend=BACKEND)
     true_on_scan = ~unseen & (clean.closest_points(skin)[2] < ON_SCAN)
     for c, r in zip(centres, radii):
         true_on_scan &= np.linalg.norm(skin - c, axis=1) > r
@@ -378,7 +380,7 @@ def _legacy_head(seed, *, n_targets=8, subdiv=2, decimate=0.6, holes=2, noise_mm
         sv = sv + geometry.vertex_normals(sv, st) * rng.normal(0, noise_mm * 1e-3, size=(len(sv), 1))
 
     # FDPs: truth, and clicks = truth + noise, snapped to the scan; none inside a hole or unseen part
-    query = spatial.MeshQuery(sv, st)
+    query = spatial.MeshQuery(sv, st, backend=BACKEND)
     true_fdps, clicks = {}, {}
     for name, ref in tpl.meta["fdps"].items():
         if ref["part"] not in ("skin", "eye_l", "eye_r"):
@@ -586,7 +588,7 @@ def _scan_geometry(seed, n_targets, subdiv, decimate, holes, noise_mm, pose, uni
     remap[used_v] = np.arange(len(used_v))
     sv, st = sv[used_v], remap[st]
 
-    clean = spatial.MeshQuery(sv, st)
+    clean = spatial.MeshQuery(sv, st, backend=BACKEND)
 
     def on_scan(points, reach=ON_SCAN):
         points = np.atleast_2d(points)
@@ -616,7 +618,7 @@ def _scan_geometry(seed, n_targets, subdiv, decimate, holes, noise_mm, pose, uni
         return scale * np.asarray(x) @ rot.T + trans
 
     return {"true_parts": true_parts, "true_fdps": true_fdps, "sv": sv, "st": st, "holes": hole_list,
-            "query": spatial.MeshQuery(sv, st), "clickable": clickable, "held_out": held_out, "markers_true": markers,
+            "query": spatial.MeshQuery(sv, st, backend=BACKEND), "clickable": clickable, "held_out": held_out, "markers_true": markers,
             "true_on_scan": true_on_scan, "place": place, "similarity": (scale, rot, trans),
             "vertex_tree": cKDTree(np.vstack([true_parts[n] for n in SCANNED_PARTS])),
             "meta": {"seed": seed, "style": "scan", "targets": used, "unit": unit, "noise_mm": round(noise_mm, 3),

@@ -6,50 +6,26 @@ import json
 import bpy
 import numpy as np
 
-from . import bridge, scene
 from ..core import mpeg4
-from ..core.skin.drive import FAP_HEAD
 from ..core.anatomy import Anatomy
 from ..core.exceptions import HeadAdaptError
+from ..core.skin.drive import FAP_HEAD
+from . import bridge, scene
 
 JAW_CHILDREN = ("mandible", "teeth_lower")     # meshes stored relative to the jaw pivot empty
 PREVIEW_FRAMES = 30                            # frames per expression in the preview
 
 
-def anatomy_from_objects(tpl, root):
-    """The Anatomy (root frame, metres) of a template or adapted head hierarchy, read from its objects."""
-    objs = scene.template_objects(root)
-    missing = [p for p in ("skin", "cranium", "mandible", "jaw_pivot", *tpl.parts) if p not in objs]
-    if missing:
-        raise HeadAdaptError(f"{root.name!r} is not a complete HeadAdapt head: missing {', '.join(missing)}")
-    pivot = np.array(objs["jaw_pivot"].location)
-    parts = {}
-    for name in tpl.parts:
-        verts, _ = bridge.mesh_arrays(objs[name], world=False)
-        if len(verts) != len(tpl.parts[name].verts):
-            raise HeadAdaptError(f"part {name!r} of {root.name!r} has {len(verts)} vertices, the template "
-                                 f"{len(tpl.parts[name].verts)}: its topology was edited")
-        parts[name] = verts + (pivot if name in JAW_CHILDREN else 0.0)
-    fdps, muscles, sphincters = {}, [], []
-    meta_m = {m["name"]: m for m in tpl.meta["muscles"]}
-    meta_s = {s["name"]: s for s in tpl.meta["sphincters"]}
-    for o in root.children_recursive:
-        if "headadapt_fdp" in o:
-            fdps[o["headadapt_fdp"]] = np.array(o.location)
-        name = o.get("headadapt_muscle")
-        if name is None:
-            continue
-        pts = np.array([p.co[:3] for p in o.data.splines[0].points])
-        if name in meta_m:
-            muscles.append({"name": name, "regions": meta_m[name]["regions"], "attachment": pts[0],
-                            "insertion": pts[1]})
-        elif name in meta_s:
-            centre = pts.mean(axis=0)
-            sphincters.append({"name": name, "regions": meta_s[name]["regions"], "centre": centre,
-                               "axes": [pts[0] - centre, pts[len(pts) // 4] - centre]})
-    fapus = json.loads(root["headadapt_fapus"]) if "headadapt_fapus" in root else mpeg4.measure_fapus(fdps)
-    return Anatomy(parts=parts, muscles=muscles, sphincters=sphincters, fdps=fdps, fapus=fapus,
-                   jaw_pivot=pivot, rigid={})
+def stored_anatomy(tpl, root):
+    """The Anatomy a head hierarchy was built with (root frame, metres): the adapted head's, stored on
+    its root by blendout.build_result_objects; None for the template's own hierarchy (the bake then
+    simulates the template). The parts' objects are not read back (float32, edits to the meshes)."""
+    if "headadapt_anatomy" in root:
+        return Anatomy.from_plain(root["headadapt_anatomy"].to_dict(), tpl)
+    if root.get("headadapt_part") == "root":
+        return None
+    raise HeadAdaptError(f"{root.name!r} has no HeadAdapt anatomy: adapt again (results made before "
+                         f"HeadAdapt 0.1 kept it in their objects only)")
 
 
 def write_shape_keys(root, keys):
@@ -88,7 +64,7 @@ def _fcurves(id_data):
     action = id_data.animation_data.action
     if hasattr(action, "fcurves") and not hasattr(action, "layers"):
         return action.fcurves
-    from bpy_extras import anim_utils            # Blender 4.4+: layered actions
+    from bpy_extras import anim_utils  # Blender 4.4+: layered actions
     bag = anim_utils.action_get_channelbag_for_slot(action, id_data.animation_data.action_slot)
     return bag.fcurves
 
@@ -125,9 +101,10 @@ def import_fap(root, anim, start=1):
     """Keyframe an MPEG-4 FapAnimation on a baked head: FAP keys, expressions, visemes, head rotation.
 
     A FAP's key value is its .fap value / the FAP units its key stands for (recorded at bake time);
-    expressions take intensity / 63; visemes blend by viseme_blend / 63; head_pitch/yaw/roll turn
-    the root (AU = 1e-5 rad). Returns {what: count} keyed.
+    expressions take intensity / 63; visemes blend by viseme_blend / 63 (mpeg4.INTENSITY_MAX);
+    head_pitch/yaw/roll turn the root (AU = mpeg4.AU_RAD). Returns {what: count} keyed.
     """
+    full = float(mpeg4.INTENSITY_MAX)
     objs = scene.template_objects(root)
     info = json.loads(objs["skin"].get("headadapt_keys", "{}"))
     if not info:
@@ -150,7 +127,7 @@ def import_fap(root, anim, start=1):
         given = ~np.isnan(col)
         if given.any():
             base = root.rotation_euler[axis]
-            _fcurve_set(root, "rotation_euler", frames[given], base + col[given] * 1e-5, index=axis)
+            _fcurve_set(root, "rotation_euler", frames[given], base + col[given] * mpeg4.AU_RAD, index=axis)
             counts["head"] += 1
     ex = anim.expressions
     if (~np.isnan(ex[:, 0])).any():
@@ -158,13 +135,13 @@ def import_fap(root, anim, start=1):
         for i, name in enumerate(mpeg4.EXPRESSIONS, start=1):
             if name not in info:
                 continue
-            w = np.where(ex[rows, 0] == i, ex[rows, 1] / 63.0, 0.0) + np.where(ex[rows, 2] == i, ex[rows, 3] / 63.0, 0.0)
+            w = (np.where(ex[rows, 0] == i, ex[rows, 1], 0.0) + np.where(ex[rows, 2] == i, ex[rows, 3], 0.0)) / full
             keyframe_key(root, name, frames[rows], w)
             counts["expressions"] += 1
     vi = anim.visemes
     if (~np.isnan(vi[:, 0])).any():
         rows = ~np.isnan(vi[:, 0])
-        blend = np.nan_to_num(vi[rows, 2], nan=63.0) / 63.0
+        blend = np.nan_to_num(vi[rows, 2], nan=full) / full
         for number, (name, _) in mpeg4.VISEMES.items():
             key = f"viseme_{name}"
             if key not in info:

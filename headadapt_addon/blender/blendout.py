@@ -8,33 +8,38 @@ import tempfile
 import bpy
 import numpy as np
 
-from . import bridge, scene
 from ..core.anatomy import transfer
 from ..core.exceptions import FileFormatError
+from . import animation, bridge, scene
 
 RESULT_COLLECTION = "HeadAdapt result"
 
 
-def adapted_parts(tpl, result):
-    """{part: (n,3) verts} of every template mesh carried through the result (template frame, m):
-    the paper's sec 6.2 transfer (core.anatomy)."""
-    return transfer(tpl, result).parts
+def heat_colours(dist_mm, limit_mm=3.0):
+    """RGBA (n,4): blue at 0 mm through green and yellow to red at limit_mm and beyond; grey where NaN (no scan)."""
+    dist_mm = np.asarray(dist_mm, dtype=float)
+    t = np.clip(np.nan_to_num(dist_mm, nan=0.0) / limit_mm, 0.0, 1.0)
+    r = np.clip(2 * t, 0, 1)
+    g = np.clip(2 - 2 * t, 0, 1) * np.clip(2 * t + 0.3, 0, 1)
+    b = np.clip(1 - 2 * t, 0, 1)
+    rgba = np.c_[r, g, b, np.ones_like(t)]
+    rgba[np.isnan(dist_mm)] = (0.6, 0.6, 0.6, 1.0)
+    return rgba
 
 
-def build_result_objects(tpl, result, target_scene, scan_matrix=None):
+def build_result_objects(tpl, result, target_scene, scan_matrix=None, anatomy=None):
     """Add the adapted template (all parts) to a new "HeadAdapt result" collection, placed on the scan.
 
     The hierarchy keeps template-frame coordinates; its root carries scan_matrix @ inverse
     calibration, so it overlays the scan object. The skin gets a "HeadAdapt distance" colour
-    attribute (distance to the scan, blue 0 mm to red 3 mm). Returns the root.
+    attribute (distance to the scan, blue 0 mm to red 3 mm); the root keeps the anatomy (`anatomy`,
+    else transferred here) for the bake. Returns the root.
     """
     import mathutils
 
-    from ..ui.operators import heat_colours
-
     coll = bpy.data.collections.new(RESULT_COLLECTION)
     target_scene.collection.children.link(coll)
-    ana = transfer(tpl, result)
+    ana = anatomy if anatomy is not None else transfer(tpl, result)
     parts = ana.parts
     root = scene.add_template(tpl, coll, name="HA Adapted head")
     objs = scene.template_objects(root)
@@ -60,6 +65,7 @@ def build_result_objects(tpl, result, target_scene, scan_matrix=None):
         co = np.hstack([pts, np.ones((len(pts), 1))]).astype(np.float32)
         o.data.splines[0].points.foreach_set("co", co.ravel())
     root["headadapt_fapus"] = json.dumps(ana.fapus)
+    root["headadapt_anatomy"] = ana.to_plain()      # float64, exactly what the bake simulates on
     dist_mm = result.distances * 1000.0
     bridge.set_point_colors(objs["skin"].data, "HeadAdapt distance", heat_colours(dist_mm))
     m = mathutils.Matrix(result.similarity.inverse().matrix4().tolist())
@@ -70,11 +76,14 @@ def build_result_objects(tpl, result, target_scene, scan_matrix=None):
     return root
 
 
-def bake_result(tpl, root, kinds=("expression", "viseme", "fap"), preview=True, progress=None):
-    """Bake expressions/visemes/FAPs of a head hierarchy to shape keys (+ the preview action); timings."""
-    from . import animation
+def bake_result(tpl, root, kinds=("expression", "viseme", "fap"), preview=True, progress=None, anatomy=None):
+    """Bake expressions/visemes/FAPs of a head hierarchy to shape keys (+ the preview action); timings.
+    The anatomy simulated is `anatomy` (the batch passes the transfer's own), else the one stored on
+    the root by build_result_objects, else (the template's hierarchy) the template's."""
     from ..core.skin import bake
-    keys, timing = bake.bake(tpl, animation.anatomy_from_objects(tpl, root), kinds=kinds, progress=progress)
+    if anatomy is None:
+        anatomy = animation.stored_anatomy(tpl, root)
+    keys, timing = bake.bake(tpl, anatomy, kinds=kinds, progress=progress)
     animation.write_shape_keys(root, keys)
     if preview and "expression" in kinds:
         animation.preview_action(root)
@@ -86,9 +95,10 @@ def build_result_scene(tpl, result, scan_verts, scan_tris, landmarks, report, sc
     scan_obj = bpy.data.objects.new(scan_name, bridge.new_mesh(scan_name, scan_verts, scan_tris))
     bpy.context.scene.collection.objects.link(scan_obj)
     scan_obj["headadapt_landmarks"] = json.dumps({k: [float(c) for c in v] for k, v in landmarks.items()})
-    root = build_result_objects(tpl, result, bpy.context.scene)
+    ana = transfer(tpl, result)
+    root = build_result_objects(tpl, result, bpy.context.scene, anatomy=ana)
     if bake:
-        report = dict(report, bake=bake_result(tpl, root))
+        report = dict(report, bake=bake_result(tpl, root, anatomy=ana))
     text = bpy.data.texts.new("HeadAdapt report")
     text.write(json.dumps(report, indent=1, default=float))
     root["headadapt_report"] = json.dumps(report, default=float)

@@ -138,3 +138,9 @@ def template_objects(root):
             key = obj.name
         out[key] = obj
     return out
+
+
+def head_root(context):
+    """The head expressions act on: the adaptation result if there is one, else the template."""
+    s = context.scene.headadapt
+    return s.result_root or s.template_root

@@ -9,9 +9,9 @@ import dataclasses
 
 import numpy as np
 
-from .mesh import geometry
 from . import mpeg4
 from .adapt.calibration import Similarity
+from .mesh import geometry
 from .mesh.inside import winding_numbers
 
 # rigid parts and the FDPs that carry them (eq 25-28): x axis (a - b), y axis (c - d), reference set
@@ -34,6 +34,34 @@ class Anatomy:
     fapus: dict
     jaw_pivot: np.ndarray
     rigid: dict
+
+    def to_plain(self) -> dict:
+        """The anatomy as numbers only (float64 kept; names and regions come from the template):
+        what a Blender ID property or JSON holds."""
+        def flat(a):
+            return np.asarray(a, dtype=np.float64).ravel().tolist()
+        return {"parts": {k: flat(v) for k, v in self.parts.items()},
+                "muscles": {m["name"]: flat([m["attachment"], m["insertion"]]) for m in self.muscles},
+                "sphincters": {s["name"]: flat([s["centre"], *s["axes"]]) for s in self.sphincters},
+                "fdps": {k: flat(v) for k, v in self.fdps.items()},
+                "fapus": {k: float(v) for k, v in self.fapus.items()},
+                "jaw_pivot": flat(self.jaw_pivot),
+                "rigid": {k: flat([[s.scale, 0.0, 0.0], *s.rotation, s.translation]) for k, s in self.rigid.items()}}
+
+    @classmethod
+    def from_plain(cls, plain, tpl) -> Anatomy:
+        """The Anatomy of to_plain's numbers (muscle and sphincter regions from the template)."""
+        def pts(a):
+            return np.asarray(a, dtype=np.float64).reshape(-1, 3)
+        regions = {m["name"]: m["regions"] for m in (*tpl.meta["muscles"], *tpl.meta["sphincters"])}
+        muscles = [{"name": k, "regions": regions[k], "attachment": pts(v)[0], "insertion": pts(v)[1]}
+                   for k, v in plain["muscles"].items()]
+        sphincters = [{"name": k, "regions": regions[k], "centre": pts(v)[0], "axes": [pts(v)[1], pts(v)[2]]}
+                      for k, v in plain["sphincters"].items()]
+        rigid = {k: Similarity(float(pts(v)[0, 0]), pts(v)[1:4], pts(v)[4]) for k, v in plain["rigid"].items()}
+        return cls(parts={k: pts(v) for k, v in plain["parts"].items()}, muscles=muscles, sphincters=sphincters,
+                   fdps={k: pts(v)[0] for k, v in plain["fdps"].items()}, fapus=dict(plain["fapus"]),
+                   jaw_pivot=pts(plain["jaw_pivot"])[0], rigid=rigid)
 
 
 def _frame(p, x_pair, y_pair):
@@ -77,7 +105,7 @@ def _pocket_tris(tpl, hidden):
     return tpl.skin.tris[hidden[tpl.skin.tris].all(axis=1)]
 
 
-def keep_inside(tpl, bone_template, bone_mapped, skin_adapted, clearance=0.0015, backend="numpy"):  # noqa: C901
+def keep_inside(tpl, bone_template, bone_mapped, skin_adapted, clearance=0.0015, backend="numpy"):
     """Mapped bone points (n,3), moved where needed to at least `clearance` under the adapted skin.
 
     Each bone point keeps, from the template, its nearest point on the visible skin (face +
@@ -255,7 +283,7 @@ def seat_orbits(tpl, scan, parts, rigid, mapped):
             continue
         shift = -(push + LID_GAP) * gaze
 
-        def fade(points):
+        def fade(points, centre=centre, radius=radius, shift=shift):
             d = np.linalg.norm(points - centre, axis=1) - radius
             t = np.clip((d - ORBIT_FULL) / (ORBIT_FADE - ORBIT_FULL), 0.0, 1.0)
             return (1.0 - t * t * (3.0 - 2.0 * t))[:, None] * shift

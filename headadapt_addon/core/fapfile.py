@@ -24,7 +24,8 @@ from .meshio import write_atomic
 N = mpeg4.N_FAPS                                              # 68
 # The rest of the compound vector when a file gives FAP 1 / FAP 2 as one value (the select1):
 # viseme 2 = none with blend 63 (all viseme 1); expression at intensity 63, second one neutral.
-_ONE_VALUE_REST = {1: (0.0, 63.0, 0.0), 2: (63.0, 0.0, 0.0, 0.0, 0.0)}
+_FULL = float(mpeg4.INTENSITY_MAX)
+_ONE_VALUE_REST = {1: (0.0, _FULL, 0.0), 2: (_FULL, 0.0, 0.0, 0.0, 0.0)}
 
 
 @dataclasses.dataclass

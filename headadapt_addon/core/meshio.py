@@ -16,8 +16,8 @@ import xml.etree.ElementTree as ET
 
 import numpy as np
 
-from .exceptions import FileFormatError, LandmarkError
 from . import limits, mpeg4, readers
+from .exceptions import FileFormatError, LandmarkError
 
 
 # ---------------------------------------------------------------------------------------------
@@ -75,12 +75,18 @@ def write_obj(path, verts, tris, header="HeadAdapt"):
 # landmarks
 # ---------------------------------------------------------------------------------------------
 def read_landmarks(path):
-    """Read FDP landmarks {id: (3,) float} from JSON {"points": {...}} or a MeshLab .pp file (file's frame).
+    """FDP landmarks {id: (3,) float} of a JSON or MeshLab .pp file (read_landmark_file's points)."""
+    return read_landmark_file(path)[0]
+
+
+def read_landmark_file(path):
+    """Read FDP landmarks ({id: (3,) float}, meta) from JSON {"points": {...}} or a MeshLab .pp file
+    (file's frame).
 
     The file's size is checked before it is read; XML entity declarations are refused (no entity
     expansion). Unknown names and anything but three finite numbers raise LandmarkError naming the
     FDP; the other top-level JSON fields (a "template_sha256", held-out "markers", checked like the
-    points) are kept as ``read_landmarks.last_meta``.
+    points) are returned as the meta dict.
     """
     path = pathlib.Path(path)
     raw = limits.read_capped(path, limits.LANDMARKS_MAX_BYTES, "landmark file")
@@ -103,11 +109,7 @@ def read_landmarks(path):
             raise LandmarkError(f'{path}: "markers" must be an object {{"name": [x, y, z], ...}}')
         limits.check_count(path, "markers", len(markers), limits.LANDMARKS_MAX_POINTS)
         meta["markers"] = {str(k): _xyz(path, f"marker {k}", v).tolist() for k, v in markers.items()}
-    read_landmarks.last_meta = meta
-    return dict(sorted(out.items(), key=lambda kv: mpeg4.fdp_sort_key(kv[0])))
-
-
-read_landmarks.last_meta = {}
+    return dict(sorted(out.items(), key=lambda kv: mpeg4.fdp_sort_key(kv[0]))), meta
 
 
 def _xyz(path, what, value):

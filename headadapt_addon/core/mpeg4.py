@@ -140,6 +140,8 @@ def check_fdp_name(name: str) -> str:
 # FAPUs
 # ---------------------------------------------------------------------------------------------
 FAPU_NAMES = ("IRISD", "ES", "ENS", "MNS", "MW", "AU")
+AU_RAD = 1e-5                  # the angle unit of rotation FAPs, rad
+INTENSITY_MAX = 63             # FAP 1/2: viseme blend and expression intensity run 0..63
 
 _FAPU_NEEDS = {"IRISD": ("3.1", "3.3"), "ES": ("3.5", "3.6"), "ENS": ("3.5", "3.6", "9.15"),
                "MNS": ("9.15", "2.2"), "MW": ("8.3", "8.4")}
@@ -149,7 +151,7 @@ def measure_fapus(points: dict) -> dict[str, float]:
     """FAPUs of a neutral face from its FDP positions {id: xyz}, in the points' length unit (AU in rad).
 
     IRISD = |3.1-3.3|, ES = |3.5-3.6|, ENS = distance from the pupils' midpoint to 9.15,
-    MNS = |9.15-2.2|, MW = |8.3-8.4|, each divided by 1024; AU = 1e-5 rad.
+    MNS = |9.15-2.2|, MW = |8.3-8.4|, each divided by 1024; AU = AU_RAD.
     """
     missing = sorted({n for need in _FAPU_NEEDS.values() for n in need} - set(points), key=fdp_sort_key)
     if missing:
@@ -162,7 +164,7 @@ def measure_fapus(points: dict) -> dict[str, float]:
             "MNS": np.linalg.norm(p["9.15"] - p["2.2"]),
             "MW": np.linalg.norm(p["8.3"] - p["8.4"])}
     out = {k: float(v) / 1024.0 for k, v in dist.items()}
-    out["AU"] = 1e-5
+    out["AU"] = AU_RAD
     return out
 
 

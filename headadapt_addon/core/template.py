@@ -106,6 +106,12 @@ class Template:
         return self.region_mask(*HIDDEN_REGIONS)
 
 
+@functools.cache
+def bundled_template():
+    """The template shipped in assets/template, loaded once per process (it is never changed)."""
+    return load_template()
+
+
 def load_template(directory=None):
     """Load the template from assets/template (or `directory`); FileFormatError names the file."""
     directory = pathlib.Path(directory or TEMPLATE_DIR)

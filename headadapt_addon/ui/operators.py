@@ -1,30 +1,26 @@
 """Operators: thin wrappers that gather arrays, call one core function, write results back, report.
 
-The scan object is never changed (its landmarks live in a custom property); results go to new
-objects in the "HeadAdapt result" collection. Every operator is undoable.
+The scan's mesh is never changed (its landmarks live in a custom property of the scan object);
+results go to new objects in the "HeadAdapt result" collection. Every operator that changes the
+scene is undoable.
 """
 
 import json
 import pathlib
 
 import bpy
-import numpy as np
 from bpy_extras.io_utils import ExportHelper, ImportHelper
 
 from ..blender import bridge, landmarks, scene
+from ..blender.scene import head_root
 from ..core import mpeg4
 from ..core.exceptions import HeadAdaptError
 
-_TEMPLATE = None
-
 
 def template():
-    """The bundled template (loaded once per session)."""
-    global _TEMPLATE
-    if _TEMPLATE is None:
-        from ..core.template import load_template
-        _TEMPLATE = load_template()
-    return _TEMPLATE
+    """The bundled template (loaded once per session: core.template.bundled_template)."""
+    from ..core.template import bundled_template
+    return bundled_template()
 
 
 def settings(context):
@@ -110,10 +106,9 @@ class HEADADAPT_OT_import_landmarks(_Base, ImportHelper, bpy.types.Operator):
     def execute(self, context):
         from ..core import meshio
         try:
-            pts = meshio.read_landmarks(self.filepath)
+            pts, meta = meshio.read_landmark_file(self.filepath)
         except HeadAdaptError as exc:
             return self.fail(str(exc))
-        meta = meshio.read_landmarks.last_meta
         sha = meta.get("template_sha256")
         if sha and sha != template().meta["content_sha256"]:
             return self.fail(f"{pathlib.Path(self.filepath).name} was made for another template "
@@ -239,18 +234,6 @@ class HEADADAPT_OT_calibrate(_Base, bpy.types.Operator):
         return {"FINISHED"}
 
 
-def heat_colours(dist_mm, limit_mm=3.0):
-    """RGBA (n,4): blue at 0 mm through green and yellow to red at limit_mm and beyond; grey where NaN (no scan)."""
-    dist_mm = np.asarray(dist_mm, dtype=float)
-    t = np.clip(np.nan_to_num(dist_mm, nan=0.0) / limit_mm, 0.0, 1.0)
-    r = np.clip(2 * t, 0, 1)
-    g = np.clip(2 - 2 * t, 0, 1) * np.clip(2 * t + 0.3, 0, 1)
-    b = np.clip(1 - 2 * t, 0, 1)
-    rgba = np.c_[r, g, b, np.ones_like(t)]
-    rgba[np.isnan(dist_mm)] = (0.6, 0.6, 0.6, 1.0)
-    return rgba
-
-
 class HEADADAPT_OT_adapt(_Base, bpy.types.Operator):
     """Adapt the template onto the scan level by level; the result goes to a new 'HeadAdapt result' collection"""
     bl_idname = "headadapt.adapt"
@@ -264,8 +247,8 @@ class HEADADAPT_OT_adapt(_Base, bpy.types.Operator):
 
     def execute(self, context):
         from ..blender import blendout
+        from ..core.adapt import AdaptOptions, adapt
         from ..core.adapt import outcome as outcome_text
-        from ..core.adapt.pipeline import AdaptOptions, adapt
         s = settings(context)
         problem = scan_problem(context)
         if problem:
@@ -298,12 +281,6 @@ class HEADADAPT_OT_adapt(_Base, bpy.types.Operator):
         else:
             self.report({"INFO"}, msg)
         return {"FINISHED"}
-
-
-def head_root(context):
-    """The head expressions act on: the adaptation result if there is one, else the template."""
-    s = settings(context)
-    return s.result_root or s.template_root
 
 
 class HEADADAPT_OT_bake_expressions(_Base, bpy.types.Operator):

@@ -6,7 +6,7 @@ import textwrap
 import bpy
 
 from ..blender import landmarks, scene
-from .operators import head_root
+from ..blender.scene import head_root
 from ..core import mpeg4
 from ..core.adapt import outcome as outcome_text
 

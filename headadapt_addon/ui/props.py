@@ -3,6 +3,7 @@
 import bpy
 
 from ..core import mpeg4
+from ..core.adapt.options import AdaptOptions
 
 
 def _is_mesh(_self, obj):
@@ -18,7 +19,7 @@ class HeadAdaptSettings(bpy.types.PropertyGroup):
     active_fdp: bpy.props.EnumProperty(
         name="FDP", items=[(k, k, f.label) for k, f in mpeg4.FDPS.items()], default="2.1",
         description="The FDP the next click places")
-    max_levels: bpy.props.IntProperty(name="Levels", default=5, min=0, max=8,
+    max_levels: bpy.props.IntProperty(name="Levels", default=AdaptOptions.max_levels, min=0, max=8,
                                       description="Maximum number of refinement levels after level 0")
     calibration: bpy.props.EnumProperty(
         name="Calibration", default="auto",

@@ -41,14 +41,13 @@ import numpy as np
 ROOT = pathlib.Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
 
-from headadapt_addon.core import adapt
+from headadapt_addon.core import adapt, meshio, mpeg4
 from headadapt_addon.core.mesh import geometry, spatial
-from headadapt_addon.core import meshio, mpeg4  # noqa: E402
-from headadapt_addon.core.template import load_template  # noqa: E402
-from tools import testheads  # noqa: E402
+from headadapt_addon.core.template import load_template
+from tools import testheads
 
 REPORTING_SEEDS = tuple(range(100, 108))
-TUNING_SEEDS = tuple(range(0, 50))
+TUNING_SEEDS = tuple(range(50))
 METHODS = ("headadapt", "rbf_clicks", "nricp_amberg")
 CLICK_SETS = {"8": mpeg4.CLICKS_8, "11": mpeg4.CLICKS_11}
 
@@ -171,7 +170,7 @@ def synthetic(args):
         head = testheads.make_head(seed, style=args.style)
         made = time.perf_counter() - t0
         seen = face & head.true_on_scan
-        query = spatial.MeshQuery(head.scan_verts, head.scan_tris)
+        query = spatial.MeshQuery(head.scan_verts, head.scan_tris, backend=testheads.BACKEND)
         for name in sets:
             clicks = {k: head.fdp_clicks[k] for k in CLICK_SETS[name] if k in head.fdp_clicks}
             out, res = run_methods(tpl, head.scan_verts, head.scan_tris, clicks, markers=head.markers,
@@ -211,7 +210,7 @@ def real(args):
         verts, tris = meshio.read_mesh(scan)[:2]
         clicks = meshio.read_landmarks(path)
         out, res = run_methods(tpl, verts, tris, clicks, nricp=not args.no_nricp)
-        query = spatial.MeshQuery(verts, tris)
+        query = spatial.MeshQuery(verts, tris, backend=testheads.BACKEND)
         border = geometry.boundary_faces(np.asarray(tris))
         inside = face.copy()
         dist = {}

@@ -17,8 +17,8 @@ import numpy as np
 ROOT = pathlib.Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
 
-from headadapt_addon.core.template import load_template  # noqa: E402
-from tools import realct  # noqa: E402
+from headadapt_addon.core.template import load_template
+from tools import realct
 
 
 def main():

@@ -21,9 +21,9 @@ ROOT = pathlib.Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
 
 from headadapt_addon.core.skin import bake, drive
-from headadapt_addon.core.skin.build import build as build_skin  # noqa: E402
-from headadapt_addon.core.template import load_template  # noqa: E402
-from tools import faceunits  # noqa: E402
+from headadapt_addon.core.skin.build import build as build_skin
+from headadapt_addon.core.template import load_template
+from tools import faceunits
 
 BASIS_ACTIVATION = 0.5     # fields sampled at half activation (the fit scales them)
 

@@ -178,14 +178,12 @@ def near_boundary(scan):
 def spread(points, radius):
     """Indices of a greedy subset of points (in the given priority order) at least radius apart.
 
-    Exact greedy on a grid: points are bucketed in cells of side radius; the Python loop runs
-    over occupied cells' candidates only where two candidates could conflict.
+    Exact greedy: a kd-tree lists every pair of points closer than radius; a point with no earlier
+    neighbour is always taken, and the Python loop runs only over points that have one.
     """
     if len(points) == 0:
         return np.zeros(0, int)
     points = np.asarray(points)
-    # first pass (vectorised): the first point of each cell of side radius/sqrt(3) is taken for sure
-    # if no earlier-taken point can be within radius -- resolved by the exact greedy below on few points
     tree = cKDTree(points)
     pairs = tree.query_pairs(radius, output_type="ndarray")
     if len(pairs) == 0:

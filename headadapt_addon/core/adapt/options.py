@@ -9,7 +9,6 @@ import numpy as np
 
 from . import calibration
 
-
 SCANNER_VISIBLE_PARTS = ("skin", "eye_l", "eye_r")
 
 
@@ -128,7 +127,7 @@ class AdaptResult:
         return {
             "levels": [dataclasses.asdict(lv) for lv in self.levels],
             "best_level": self.best_level,
-            "stopped_because": ("E reached its minimum at level %d" % self.best_level
+            "stopped_because": (f"E reached its minimum at level {self.best_level}"
                                 if self.best_level < self.levels[-1].level else "last level reached"),
             "seconds": self.seconds,
             "calibration": self.calibration_info,

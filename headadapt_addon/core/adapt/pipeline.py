@@ -28,7 +28,7 @@ from .outcome import fit_outcome
 from .pairs import curvature_pairs, face_box, feature_mesh_pairs
 
 
-def adapt(tpl, scan_verts, scan_tris, scan_fdps, options: AdaptOptions = AdaptOptions(), markers=None,
+def adapt(tpl, scan_verts, scan_tris, scan_fdps, options: AdaptOptions | None = None, markers=None,
           progress=None) -> AdaptResult:
     """Adapt the template skin onto a scan; scan and FDPs in the scan's frame/unit; returns AdaptResult.
 
@@ -36,6 +36,7 @@ def adapt(tpl, scan_verts, scan_tris, scan_fdps, options: AdaptOptions = AdaptOp
     (3,)} on the scan (for E_m). progress: optional callable(fraction 0..1, message).
     """
     t_start = time.perf_counter()
+    options = options or AdaptOptions()
     say = progress or (lambda f, msg: None)
 
     # 1. calibration (sec 3.1), after left/right labels that look swapped are put right

@@ -2,8 +2,8 @@
 
 import numpy as np
 
-from . import calibration, rbf
 from ..mesh import spatial
+from . import calibration, rbf
 from .options import SCANNER_VISIBLE_PARTS
 
 

@@ -55,11 +55,6 @@ def boundary_faces(t):
     return on[t].any(axis=1)
 
 
-def mesh_width(v):
-    """Maximum width of a mesh: the largest bounding-box side, in the verts' unit."""
-    return float(np.ptp(v, axis=0).max())
-
-
 def cotan_laplacian(v, t):
     """(L, A_mixed): sparse cotangent matrix L (n,n) with L @ v = sum_j (cot a + cot b)(x_j - x_i),
     and the mixed Voronoi area per vertex (Meyer et al. 2003, the paper's appendix)."""

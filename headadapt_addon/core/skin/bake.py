@@ -14,10 +14,10 @@ import time
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from . import drive
-from .build import build
 from .. import mpeg4
 from ..anatomy import surface_point
+from . import drive
+from .build import build
 
 JAW_FOLLOWERS = ("mandible", "teeth_lower", "tongue")
 
@@ -64,7 +64,7 @@ def bake(tpl, anatomy=None, kinds=("expression", "viseme", "fap"), progress=None
             else:
                 moved = {part: v + amount * np.asarray(axis)}
             fap = mpeg4.FAP_BY_NAME[name]
-            units = (amount / 1e-5) if how == "rotate" else _fap_units(fap, tpl, parts, moved, fapus)
+            units = (amount / mpeg4.AU_RAD) if how == "rotate" else _fap_units(fap, tpl, parts, moved, fapus)
             keys.append(BakedKey(name, "fap", moved, units))
         else:
             moved = {"skin": model.equilibrium(recipe)}

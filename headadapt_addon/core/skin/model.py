@@ -58,7 +58,8 @@ class SkinModel(JawMixin, ContactMixin):
     tris: np.ndarray              # (t,3) skin triangles
     folds: geometry.FoldCheck     # folded skin triangles against their rest orientation (slivers: SLIVER)
     adjacency: object             # (n,n) sparse, row-normalised vertex neighbours
-    bone: tuple                   # cranium and mandible: (queries, face normals), verts, bone tris
+    bone: tuple                   # (cranium, mandible) each (query, face normals, faces by an opening),
+                                  # then cranium verts, mandible verts (rest), skull triangles
 
     @property
     def controls(self):
