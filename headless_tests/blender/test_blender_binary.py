@@ -19,7 +19,8 @@ from headadapt_addon.core.template import load_template
 
 BLENDER = shutil.which("blender")
 # Slow for the Blender 5.2 run: the binary is Debian's whichever bpy module runs the suite.
-pytestmark = [pytest.mark.skipif(BLENDER is None, reason="no blender binary on the PATH"), pytest.mark.slow]
+pytestmark = [pytest.mark.skipif(BLENDER is None, reason="no blender binary on the PATH"), pytest.mark.slow,
+              pytest.mark.binary]
 
 
 def _readers_path(folder):

@@ -20,7 +20,7 @@ import zipfile
 
 import pytest
 
-ROOT = pathlib.Path(__file__).resolve().parents[1]
+ROOT = pathlib.Path(__file__).resolve().parents[2]
 _spec = importlib.util.spec_from_file_location("build_extension", ROOT / "tools" / "build_extension.py")
 build_extension = importlib.util.module_from_spec(_spec)
 _spec.loader.exec_module(build_extension)
@@ -251,6 +251,7 @@ def _expected_operators():
     return sorted(cls.bl_idname for mod in (operators, picker) for cls in mod.classes if issubclass(cls, bpy.types.Operator))
 
 
+@pytest.mark.slow
 def test_linux_zip_installs_registers_and_runs_the_workflow_in_a_clean_user_config(linux_zip, tmp_path):
     user_dir = tmp_path / "blender-user"
     installed, log = _run_blender(INSTALL, [linux_zip], user_dir, tmp_path)

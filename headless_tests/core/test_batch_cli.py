@@ -99,6 +99,7 @@ def test_no_command_line_overwrites_its_inputs(tmp_path, inputs, case):
     assert after == before                                     # nothing written, nothing changed
 
 
+@pytest.mark.slow
 def test_results_are_replaced_only_with_overwrite_and_a_failed_rerun_leaves_no_stale_result(tmp_path, inputs):
     scan, marks = inputs
     out = tmp_path / "out"
@@ -119,6 +120,7 @@ def test_results_are_replaced_only_with_overwrite_and_a_failed_rerun_leaves_no_s
     assert failed["status"] == "failed" and failed["error"] == line.removeprefix("headadapt: error: ")
 
 
+@pytest.mark.slow
 def test_a_full_disk_exits_2_naming_the_file(tmp_path, inputs):
     """A file-size limit of 64 kB stands in for a full disk: report.json ("running") fits, the OBJ not."""
     scan, marks = inputs

@@ -5,7 +5,6 @@ import numpy as np
 import pytest
 
 import headadapt_addon
-from headadapt_addon.core.template import load_template
 
 
 @pytest.fixture
@@ -13,11 +12,6 @@ def addon(clean_scene):
     headadapt_addon.register()
     yield clean_scene
     headadapt_addon.unregister()
-
-
-@pytest.fixture(scope="module")
-def tpl():
-    return load_template()
 
 
 def _scan_object(tpl, scale=1000.0, name="scan"):

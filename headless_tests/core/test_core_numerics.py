@@ -7,12 +7,6 @@ from scipy.spatial.transform import Rotation
 from headadapt_addon.core.adapt import calibration, metrics, rbf
 from headadapt_addon.core.exceptions import LandmarkError, MeshError
 from headadapt_addon.core.mesh import geometry, spatial
-from headadapt_addon.core.template import load_template
-
-
-@pytest.fixture(scope="module")
-def tpl():
-    return load_template()
 
 
 @pytest.mark.parametrize("method", ["paper", "umeyama", "auto"])

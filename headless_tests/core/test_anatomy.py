@@ -2,29 +2,17 @@
 import numpy as np
 import pytest
 
-from headadapt_addon.core import adapt, anatomy
+from headadapt_addon.core import anatomy
 from headadapt_addon.core.mesh import geometry, spatial
 from headadapt_addon.core.mesh.inside import winding_numbers
-from headadapt_addon.core.template import load_template
+
+# every test here stands on generated or real heads adapted and transferred (10-20 s)
+pytestmark = pytest.mark.slow
 
 
 @pytest.fixture(scope="module")
-def tpl():
-    return load_template()
-
-
-@pytest.fixture(scope="module")
-def transferred(tpl):
-    testheads = pytest.importorskip("tools.testheads")
-    try:
-        heads = [testheads.make_head(seed) for seed in (3, 4, 7)]   # 7: thin lids on the orbit's rim
-    except FileNotFoundError as exc:
-        pytest.skip(str(exc))
-    out = []
-    for h in heads:
-        res = adapt.adapt(tpl, h.scan_verts, h.scan_tris, h.fdp_clicks)
-        out.append((h, res, anatomy.transfer(tpl, res)))
-    return out
+def transferred(legacy_heads):
+    return [legacy_heads(seed) for seed in (3, 4, 7)]     # 7: thin lids on the orbit's rim
 
 
 def fit_sphere(points):

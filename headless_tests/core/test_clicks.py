@@ -5,14 +5,8 @@ import pytest
 
 from headadapt_addon.core import adapt, mpeg4
 from headadapt_addon.core.mesh import spatial
-from headadapt_addon.core.template import load_template
 
 MM = 1000.0
-
-
-@pytest.fixture(scope="module")
-def tpl():
-    return load_template()
 
 
 @pytest.fixture(scope="module")
@@ -42,6 +36,7 @@ def test_no_right_click_is_dropped_on_fifty_heads(tpl, testheads):
     assert not flagged, flagged
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("seed", [250, 251, 252])
 def test_a_click_20_mm_off_is_found_and_dropped(tpl, testheads, seed):
     head = _light(testheads, seed)

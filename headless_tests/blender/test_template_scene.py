@@ -1,13 +1,5 @@
 """The template loads into Blender (bpy module) as objects under one root."""
 import numpy as np
-import pytest
-
-from headadapt_addon.core.template import load_template
-
-
-@pytest.fixture(scope="module")
-def tpl():
-    return load_template()
 
 
 def test_template_loads_as_objects_under_one_root(clean_scene, tpl):

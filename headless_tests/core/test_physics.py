@@ -5,16 +5,9 @@ the artist-made ARKit face units (cosine >= 0.7 with fitted activations)."""
 import numpy as np
 import pytest
 
-from headadapt_addon.core import anatomy
 from headadapt_addon.core.mesh.inside import winding_numbers
 from headadapt_addon.core.skin import bake, drive
 from headadapt_addon.core.skin.build import build as build_skin
-from headadapt_addon.core.template import load_template
-
-
-@pytest.fixture(scope="module")
-def tpl():
-    return load_template()
 
 
 @pytest.fixture(scope="module")
@@ -23,16 +16,10 @@ def model(tpl):
 
 
 @pytest.fixture(scope="module", params=[7, 3, 11])
-def adapted(tpl, request):
+def adapted(tpl, legacy_heads, request):
     """(Anatomy, baked keys, model) of the template adapted onto a generated head (three seeds:
     thin and full lips, narrow and wide jaws bring the lips onto different bone rims)."""
-    testheads = pytest.importorskip("tools.testheads")
-    from headadapt_addon.core import adapt
-    try:
-        head = testheads.make_head(request.param)
-    except FileNotFoundError as exc:
-        pytest.skip(str(exc))
-    ana = anatomy.transfer(tpl, adapt.adapt(tpl, head.scan_verts, head.scan_tris, head.fdp_clicks))
+    _, _, ana = legacy_heads(request.param)
     keys, timing = bake.bake(tpl, ana)
     return ana, keys, timing["model"]
 
@@ -56,6 +43,7 @@ def _check_keys(tpl, parts, keys, model):
         assert w.max() < 0.5, (key.name, int((w > 0.5).sum()))
 
 
+@pytest.mark.slow
 def test_every_template_key_stays_out_of_the_skull_and_folds_nothing(tpl, model):
     keys, timing = bake.bake(tpl)
     names = [k.name for k in keys]
@@ -77,6 +65,7 @@ def test_zero_activation_reproduces_the_neutral_face(tpl, model):
     np.testing.assert_allclose(model.equilibrium({"zygomaticus_major_l": 0.0}), tpl.skin.verts, atol=1e-4)
 
 
+@pytest.mark.slow
 def test_mirrored_activations_give_mirrored_shapes(tpl, model):
     mir = tpl.skin_mirror
     for name in model.controls:
@@ -91,6 +80,7 @@ def test_mirrored_activations_give_mirrored_shapes(tpl, model):
             assert np.abs(b[mir] * [-1, 1, 1] - a).max() < 0.5e-3, left_key
 
 
+@pytest.mark.slow
 def test_every_control_moves_the_face_locally(tpl, model):
     v0 = tpl.skin.verts
     for name, (dofs, _) in model.forces.items():     # each muscle pulls a patch, not a point
@@ -117,6 +107,7 @@ def test_jaw_opens_the_mouth_and_lids_close_the_eye(tpl, model):
     assert x[fdp["3.1"], 2] - x[fdp["3.3"], 2] < 0.25 * gap0
 
 
+@pytest.mark.slow
 def test_simulated_expressions_match_the_artists_face_units(tpl, model):
     faceunits = pytest.importorskip("tools.faceunits")
     if faceunits.wheel_path() is None:
@@ -124,7 +115,7 @@ def test_simulated_expressions_match_the_artists_face_units(tpl, model):
     import importlib.util
     import pathlib
     spec = importlib.util.spec_from_file_location(
-        "bench_expressions", pathlib.Path(__file__).parent / "bench" / "bench_expressions.py")
+        "bench_expressions", pathlib.Path(__file__).parents[1] / "bench" / "bench_expressions.py")
     bench = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(bench)
     fits = bench.fit_units(tpl, model, faceunits.load_faceunits(tpl, drive.ARKIT_CONTROLS))

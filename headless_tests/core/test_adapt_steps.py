@@ -12,14 +12,8 @@ from headadapt_addon.core.adapt.level0 import AffineMap, feature_mesh, global_af
 from headadapt_addon.core.adapt.levels import csrbf_level, fit_level, solve_spd
 from headadapt_addon.core.adapt.options import FACE_REGIONS
 from headadapt_addon.core.adapt.pairs import curvature_pairs, feature_mesh_pairs, surface_pairs
-from headadapt_addon.core.template import load_template
 
 MM = 1000.0
-
-
-@pytest.fixture(scope="module")
-def tpl():
-    return load_template()
 
 
 def _deform(x):
@@ -148,6 +142,7 @@ def test_fit_level_converges_onto_the_scan(tpl, case):
     assert after < 0.2 * before and after * MM < 0.1, (before * MM, after * MM)
 
 
+@pytest.mark.slow
 def test_adapt_recovers_the_known_deformation(tpl, case):
     scan_v, scan_t, truth, clicks = case
     res = adapt.adapt(tpl, scan_v, scan_t, clicks)
@@ -165,6 +160,7 @@ def test_right_clicks_are_kept_a_wrong_one_is_dropped(tpl, case):
     assert set(check_clicks(fit, names, P, wrong, np.ones(len(P)))) == {"8.3"}
 
 
+@pytest.mark.slow
 def test_the_nose_tip_is_kept_with_eight_clicks(tpl, case):
     scan_v, scan_t, truth, clicks = case
     eight = {k: clicks[k] for k in mpeg4.CLICKS_8}
@@ -180,6 +176,7 @@ def test_drops_never_go_below_what_calibration_needs(tpl, case):
     assert len(names) - len(dropped) >= calibration.MIN_FDPS
 
 
+@pytest.mark.slow
 def test_swapped_labels_are_found_and_named(tpl, case):
     scan_v, scan_t, truth, clicks = case
     swapped = {(mpeg4.FDPS[k].mirror or k): v for k, v in clicks.items()}
@@ -195,6 +192,7 @@ def test_swapped_labels_are_found_and_named(tpl, case):
     assert calibration.check_handedness(clicks, tpl.fdp_points())[1]["swapped"] == []
 
 
+@pytest.mark.slow
 def test_a_mirrored_scan_is_named(tpl, case):
     scan_v, scan_t, truth, clicks = case
     flip = np.array([-1.0, 1.0, 1.0])
@@ -202,6 +200,7 @@ def test_a_mirrored_scan_is_named(tpl, case):
     assert any("mirrored" in w for w in res.outcome["warnings"])
 
 
+@pytest.mark.slow
 def test_clicks_are_evidence_not_law(tpl, case):
     """3 mm of disagreement between people costs at most 1 mm of correspondence, measured where it
     would show: on the face within 2 cm of a click."""

@@ -45,6 +45,7 @@ def _verts(obj):
     return bridge.mesh_arrays(obj, world=False)[0]
 
 
+@pytest.mark.slow
 def test_the_whole_workflow_runs_through_bpy_ops(ui_scene, capfd):
     import bpy
 
@@ -97,6 +98,7 @@ def test_the_whole_workflow_runs_through_bpy_ops(ui_scene, capfd):
         np.testing.assert_array_equal(_verts(scan), before)     # the scan is never changed
 
 
+@pytest.mark.slow
 def test_adapt_warns_when_the_fit_cannot_be_trusted_and_the_report_panel_says_why(ui_scene, tmp_path, capfd):
     """Level 0 only on the sample scan with a fringe over the forehead and a wrong click (the real
     untrustworthy fit of test_adapt.fringe_scan): the operator finishes (the result is there to
@@ -104,8 +106,8 @@ def test_adapt_warns_when_the_fit_cannot_be_trusted_and_the_report_panel_says_wh
     import bpy
 
     from headadapt_addon.ui import panels as ui
-    from headless_tests.test_adapt import fringe_scan
-    from headless_tests.test_addon_ui import _Recorder
+    from headless_tests.blender.test_addon_ui import _Recorder
+    from headless_tests.core.test_adapt import fringe_scan
 
     scan_path, marks = fringe_scan(tmp_path)
     with bpy.context.temp_override(**ui_scene):
@@ -136,6 +138,7 @@ def test_adapt_warns_when_the_fit_cannot_be_trusted_and_the_report_panel_says_wh
     assert sum(icon == "ERROR" for _t, icon in labels) == 1 + len(out["warnings"])
 
 
+@pytest.mark.slow
 def test_undo_restores_the_scene_after_adapt(ui_scene):
     import bpy
 
@@ -187,6 +190,7 @@ def test_bad_input_gets_a_clear_report_and_changes_nothing(ui_scene, tmp_path):
         assert empty.name in bpy.data.objects
 
 
+@pytest.mark.slow
 def test_batch_writes_a_blend_that_reopens_with_the_report(tmp_path):
     import subprocess
     import sys
@@ -213,6 +217,7 @@ def test_batch_writes_a_blend_that_reopens_with_the_report(tmp_path):
     assert int(keys[5]) >= 6 * 30
 
 
+@pytest.mark.slow
 def test_expressions_panel_bakes_the_template_and_imports_a_fap_file(ui_scene, tmp_path):
     import bpy
 

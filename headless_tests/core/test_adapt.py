@@ -11,14 +11,8 @@ import pytest
 from headadapt_addon.core import adapt as core_adapt
 from headadapt_addon.core.exceptions import HeadAdaptError
 from headadapt_addon.core.mesh import geometry
-from headadapt_addon.core.template import load_template
 
 MM = 1000.0
-
-
-@pytest.fixture(scope="module")
-def tpl():
-    return load_template()
 
 
 @pytest.fixture(scope="module")
@@ -48,6 +42,7 @@ def _corr_error_mm(tpl, head, result):
     return d[_face(tpl)]
 
 
+@pytest.mark.slow
 def test_errors_fall_level_by_level(tpl, heads, results):
     for head, res in zip(heads, results):
         e = [lv.E for lv in res.levels]
@@ -144,6 +139,7 @@ def test_bad_input_gets_a_clear_error(tpl, heads, case):
         core_adapt.adapt(tpl, v, t, clicks)
 
 
+@pytest.mark.slow
 def test_batch_adapt_writes_obj_and_report(tmp_path, tpl, heads):
     from tools import testheads
 
@@ -175,6 +171,7 @@ def test_batch_reports_bad_files_without_traceback(tmp_path):
     assert not (tmp_path / "o").exists()
 
 
+@pytest.mark.slow
 def test_folder_mode_adapts_the_good_pairs_and_reports_the_bad(tmp_path, heads):
     import shutil
 
@@ -201,6 +198,7 @@ def test_folder_mode_adapts_the_good_pairs_and_reports_the_bad(tmp_path, heads):
     assert json.loads((tmp_path / "out" / "broken" / "report.json").read_text())["status"] == "failed"
 
 
+@pytest.mark.slow
 def test_batch_runs_as_a_blender_script_with_double_dash(tmp_path):
     """The `blender -b --python headadapt_addon/batch.py -- adapt ...` path: script mode, args after --."""
     from headadapt_addon.batch import ROOT, SAMPLE_DIR
@@ -250,6 +248,7 @@ def fringe_scan(folder, wrong_click=True):
 OUTCOME_FIELDS = {"folds_left", "seen_rms_mm", "seen_vertices", "marker_rms_mm", "warnings", "ok"}
 
 
+@pytest.mark.slow
 def test_batch_states_the_outcome_and_exits_0_on_the_sample(tmp_path):
     from headadapt_addon.batch import SAMPLE_DIR
 
@@ -269,6 +268,7 @@ def test_batch_states_the_outcome_and_exits_0_on_the_sample(tmp_path):
     assert "headadapt: warning:" not in proc.stderr
 
 
+@pytest.mark.slow
 def test_batch_exits_3_with_warnings_when_the_fit_does_not_reach_the_scan(tmp_path):
     scan, marks = fringe_scan(tmp_path)
     out = tmp_path / "out"
@@ -291,6 +291,7 @@ def test_batch_exits_3_with_warnings_when_the_fit_does_not_reach_the_scan(tmp_pa
     assert (out / "adapted_head.obj").is_file() and (out / "fringe.blend").is_file()
 
 
+@pytest.mark.slow
 def test_folder_mode_counts_an_untrustworthy_fit_and_exits_3(tmp_path):
     fringe_scan(tmp_path / "scans")
     proc = subprocess.run([sys.executable, "-m", "headadapt_addon.batch", "folder", "--folder", str(tmp_path / "scans"),
