@@ -220,16 +220,23 @@ def run_adapt(scan_path, landmarks_path, out_dir, levels=None, calibration="auto
     return report
 
 
+def adapt_options(levels=None, calibration="auto", keep_flagged=False):
+    """The AdaptOptions of the batch's choices; the panels build theirs through this too
+    (ui.operators.adapt_options), so the same scan and clicks give the same result in both."""
+    from .core.adapt import AdaptOptions
+    return AdaptOptions(max_levels=AdaptOptions.max_levels if levels is None else levels,
+                        calibration=calibration, drop_flagged=not keep_flagged)
+
+
 def _adapt_and_write(record, verts, tris, points, markers, outputs, levels, calibration, keep_flagged, t0, log,
                      warn):
     from .core import meshio
-    from .core.adapt import AdaptOptions, adapt
+    from .core.adapt import adapt
     from .core.adapt import outcome as outcome_text
     from .core.template import load_template
 
     tpl = load_template()
-    options = AdaptOptions(max_levels=AdaptOptions.max_levels if levels is None else levels,
-                           calibration=calibration, drop_flagged=not keep_flagged)
+    options = adapt_options(levels, calibration, keep_flagged)
     log(f"headadapt: {pathlib.Path(record['scan']).name}: {len(verts):,} vertices, {len(tris):,} triangles, "
         f"{len(points)} FDPs")
     result = adapt(tpl, verts, tris, points, options, markers=markers,
@@ -252,20 +259,28 @@ def _adapt_and_write(record, verts, tris, points, markers, outputs, levels, cali
         log(f"  {result.unfolded['folded_triangles']} folded triangles relaxed "
             f"({result.unfolded['vertices_relaxed']} vertices), {result.unfolded['folded_left']} left")
     if "--blend file" in outputs:
-        _write_blend(outputs["--blend file"], tpl, result, verts, tris, points, report)
+        _write_blend(outputs["--blend file"], tpl, result, verts, tris, points, report, log)
     report["total_seconds"] = time.perf_counter() - t0
     meshio.write_atomic(outputs["report"], json.dumps(report, indent=1, default=float))
     return report
 
 
-def _write_blend(path, tpl, result, verts, tris, points, report):
+def _write_blend(path, tpl, result, verts, tris, points, report, log=print):
     """The .blend through blendout (the only place the batch job imports bpy); Blender's failure to
     save (a full disk, a folder it cannot write) becomes a FileFormatError naming the file."""
     from .blender import blendout
     from .core.exceptions import FileFormatError
 
     try:
-        blendout.write_blend(path, tpl, result, verts, tris, points, report)
+        shown = [-1]
+
+        def baking(fraction, name):          # one line per tenth of the bake (a bake takes 20-50 s)
+            tenth = int(10 * fraction)
+            if tenth > shown[0]:
+                shown[0] = tenth
+                log(f"  baking {100 * fraction:5.1f}%  {name}")
+
+        blendout.write_blend(path, tpl, result, verts, tris, points, report, progress=baking)
     except RuntimeError as exc:            # bpy.ops report failures as RuntimeError
         raise FileFormatError(f"cannot write {path}: {str(exc).strip()}") from None
 

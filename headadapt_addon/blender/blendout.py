@@ -27,13 +27,17 @@ def heat_colours(dist_mm, limit_mm=3.0):
     return rgba
 
 
-def build_result_objects(tpl, result, target_scene, scan_matrix=None, anatomy=None):
+MESH_PARTS = ("skin", "cranium", "mandible", "teeth_lower", "eye_l", "eye_r", "teeth_upper", "tongue")
+
+
+def build_result_objects(tpl, result, target_scene, scan_matrix=None, anatomy=None, name=None):
     """Add the adapted template (all parts) to a new "HeadAdapt result" collection, placed on the scan.
 
     The hierarchy keeps template-frame coordinates; its root carries scan_matrix @ inverse
     calibration, so it overlays the scan object. The skin gets a "HeadAdapt distance" colour
     attribute (distance to the scan, blue 0 mm to red 3 mm); the root keeps the anatomy (`anatomy`,
-    else transferred here) for the bake. Returns the root.
+    else transferred here) for the bake. With a name (the scan's), the root is "NAME adapted" and the
+    meshes "NAME skin", "NAME cranium", ... Returns the root.
     """
     import mathutils
 
@@ -41,8 +45,11 @@ def build_result_objects(tpl, result, target_scene, scan_matrix=None, anatomy=No
     target_scene.collection.children.link(coll)
     ana = anatomy if anatomy is not None else transfer(tpl, result)
     parts = ana.parts
-    root = scene.add_template(tpl, coll, name="HA Adapted head")
+    root = scene.add_template(tpl, coll, name=f"{name} adapted" if name else "HA Adapted head")
     objs = scene.template_objects(root)
+    if name:
+        for part in MESH_PARTS:
+            objs[part].name = objs[part].data.name = f"{name} {part}"
     pivot = ana.jaw_pivot
     objs["jaw_pivot"].location = pivot
     for name, verts in parts.items():
@@ -90,23 +97,52 @@ def bake_result(tpl, root, kinds=("expression", "viseme", "fap"), preview=True, 
     return {"keys": len(keys), "build_s": timing["build_s"], "per_key_s": timing["per_key_s"]}
 
 
-def build_result_scene(tpl, result, scan_verts, scan_tris, landmarks, report, scan_name="scan", bake=True):
-    """Add the scan (with its landmarks), the adapted template and (bake) its shape keys; return the root."""
+def add_camera_and_light(root, target_scene):
+    """A camera looking at the head's face from the front and a sun from the front-left above, so a
+    saved .blend renders (F12) without setup; both aimed at root's world bounding box."""
+    import mathutils
+    pts = [o.matrix_world @ mathutils.Vector(c) for o in root.children_recursive if o.type == "MESH"
+           for c in o.bound_box]
+    lo = mathutils.Vector([min(p[i] for p in pts) for i in range(3)])
+    hi = mathutils.Vector([max(p[i] for p in pts) for i in range(3)])
+    centre, size = (lo + hi) / 2, max((hi - lo).length, 1e-6)
+    front = (root.matrix_world.to_3x3() @ mathutils.Vector((0.0, -1.0, 0.0))).normalized()  # template: face at -Y
+    cam = bpy.data.objects.new("HeadAdapt camera", bpy.data.cameras.new("HeadAdapt camera"))
+    cam.location = centre + front * 2.2 * size
+    cam.rotation_euler = (centre - cam.location).to_track_quat("-Z", "Y").to_euler()
+    cam.data.clip_end = 10 * size
+    cam.data.clip_start = size / 100
+    sun = bpy.data.objects.new("HeadAdapt light", bpy.data.lights.new("HeadAdapt light", "SUN"))
+    sun.location = centre + front * size + mathutils.Vector((-size, 0.0, size))
+    sun.rotation_euler = (centre - sun.location).to_track_quat("-Z", "Y").to_euler()
+    sun.data.energy = 3.0
+    for obj in (cam, sun):
+        target_scene.collection.objects.link(obj)
+    target_scene.camera = cam
+    return cam, sun
+
+
+def build_result_scene(tpl, result, scan_verts, scan_tris, landmarks, report, scan_name="scan", bake=True,
+                       progress=None):
+    """Add the scan (with its landmarks), the adapted template, a camera and a light, and (bake) its
+    shape keys (progress(fraction, key name) per key); return the root."""
     scan_obj = bpy.data.objects.new(scan_name, bridge.new_mesh(scan_name, scan_verts, scan_tris))
     bpy.context.scene.collection.objects.link(scan_obj)
     scan_obj["headadapt_landmarks"] = json.dumps({k: [float(c) for c in v] for k, v in landmarks.items()})
     ana = transfer(tpl, result)
     root = build_result_objects(tpl, result, bpy.context.scene, anatomy=ana)
+    add_camera_and_light(root, bpy.context.scene)
     if bake:
-        report = dict(report, bake=bake_result(tpl, root, anatomy=ana))
+        report = dict(report, bake=bake_result(tpl, root, anatomy=ana, progress=progress))
     text = bpy.data.texts.new("HeadAdapt report")
     text.write(json.dumps(report, indent=1, default=float))
     root["headadapt_report"] = json.dumps(report, default=float)
     return root
 
 
-def write_blend(path, tpl, result, scan_verts, scan_tris, landmarks, report, bake=True):
-    """Write a fresh .blend with the scan and the adapted head, atomically (temp file, then rename)."""
+def write_blend(path, tpl, result, scan_verts, scan_tris, landmarks, report, bake=True, progress=None):
+    """Write a fresh .blend with the scan, the adapted head, a camera and a light, atomically (temp
+    file, then rename); progress(fraction, key name) while baking."""
     path = pathlib.Path(path)
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
@@ -116,7 +152,7 @@ def write_blend(path, tpl, result, scan_verts, scan_tris, landmarks, report, bak
         raise FileFormatError(f"cannot write {path}: {exc.strerror or exc}") from exc
     try:
         bpy.ops.wm.read_homefile(use_empty=True, use_factory_startup=True)
-        build_result_scene(tpl, result, scan_verts, scan_tris, landmarks, report, bake=bake)
+        build_result_scene(tpl, result, scan_verts, scan_tris, landmarks, report, bake=bake, progress=progress)
         pathlib.Path(tmp).unlink()          # mkstemp only reserved the name: Blender would back up the empty file
         bpy.ops.wm.save_as_mainfile(filepath=tmp, copy=True, compress=True)
         os.chmod(tmp, 0o644)

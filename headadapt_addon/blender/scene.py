@@ -142,5 +142,11 @@ def template_objects(root):
 
 def head_root(context):
     """The head expressions act on: the adaptation result if there is one, else the template."""
-    s = context.scene.headadapt
-    return s.result_root or s.template_root
+    s = getattr(context.scene, "headadapt", None)
+    chosen = s and (s.result_root or s.template_root)
+    if chosen is not None:
+        return chosen
+    # a .blend the batch wrote (or one whose settings were lost): the roots are tagged on the objects
+    roots = {o.get("headadapt_part"): o for o in context.scene.objects if o.get("headadapt_part") in
+             ("result_root", "root")}
+    return roots.get("result_root") or roots.get("root")

@@ -39,15 +39,54 @@ def scan_problem(context):
     return None
 
 
-def missing_calibration_fdps(context):
-    """Calibration FDPs not yet placed on the scan."""
-    pts = landmarks.get_landmarks(settings(context).scan)
-    return [k for k in mpeg4.CALIBRATION_FDPS if k not in pts]
+def visible_template_fdps():
+    """The template FDPs a scanner can see ({id: (3,)} template frame): the ones adapt calibrates on."""
+    from ..core.adapt.options import SCANNER_VISIBLE_PARTS
+    tpl = template()
+    return {k: p for k, p in tpl.fdp_points().items() if tpl.meta["fdps"][k]["part"] in SCANNER_VISIBLE_PARTS}
+
+
+def landmark_problem(context):
+    """None when the scan and its landmarks are what the batch's adapt accepts (core.adapt.calibration:
+    at least MIN_FDPS visible FDPs, finite, distinct, not on one line or plane; the paper's method
+    also needs its 8), else what is missing, as a sentence for a poll message or a report."""
+    from ..core.adapt import calibration
+    problem = scan_problem(context)
+    if problem:
+        return problem
+    s = settings(context)
+    pts = landmarks.get_landmarks(s.scan)
+    if not pts:
+        return (f"no landmarks on {s.scan.name!r}: click at least {calibration.MIN_FDPS} FDPs "
+                f"(best {', '.join(mpeg4.CLICKS_8)}) or import a landmark file")
+    try:
+        given = calibration.validate_landmarks(pts, what=f"scan {s.scan.name!r}")
+    except HeadAdaptError as exc:
+        return str(exc)
+    visible = visible_template_fdps()
+    usable = [k for k in given if k in visible]
+    if len(usable) < calibration.MIN_FDPS:
+        return (f"{len(usable)} of the placed FDPs lie on the skin or the eyes; calibration needs at least "
+                f"{calibration.MIN_FDPS} (best {', '.join(mpeg4.CLICKS_8)})")
+    if s.calibration == "paper":
+        missing = [k for k in mpeg4.CALIBRATION_FDPS if k not in given]
+        if missing:
+            return ("the paper's calibration needs FDP " + ", ".join(missing)
+                    + ": place them or choose Auto or Least squares")
+    return None
 
 
 def calibration_ready(context):
-    """The scene has a usable scan with every calibration FDP placed."""
-    return scan_problem(context) is None and not missing_calibration_fdps(context)
+    """The scene has a usable scan with enough landmarks to calibrate and adapt (the batch's rule)."""
+    return landmark_problem(context) is None
+
+
+def poll_with_message(cls, problem):
+    """poll()'s answer: True without a problem, else False with the problem as the greyed button's tooltip."""
+    if problem:
+        cls.poll_message_set(problem[:1].upper() + problem[1:])
+        return False
+    return True
 
 
 class _Base:
@@ -82,7 +121,13 @@ class HEADADAPT_OT_use_active_as_scan(_Base, bpy.types.Operator):
     @classmethod
     def poll(cls, context):
         obj = context.active_object
-        return obj is not None and obj.type == "MESH" and "headadapt_part" not in obj
+        if obj is None:
+            return poll_with_message(cls, "no active object: click the scan in the viewport first")
+        if obj.type != "MESH":
+            return poll_with_message(cls, f"the active object {obj.name!r} is not a mesh")
+        if "headadapt_part" in obj:
+            return poll_with_message(cls, f"{obj.name!r} is part of a HeadAdapt head, not a scan")
+        return True
 
     def execute(self, context):
         obj = context.active_object
@@ -101,7 +146,7 @@ class HEADADAPT_OT_import_landmarks(_Base, ImportHelper, bpy.types.Operator):
 
     @classmethod
     def poll(cls, context):
-        return scan_problem(context) is None
+        return poll_with_message(cls, scan_problem(context))
 
     def execute(self, context):
         from ..core import meshio
@@ -130,7 +175,10 @@ class HEADADAPT_OT_export_landmarks(ExportHelper, bpy.types.Operator):
 
     @classmethod
     def poll(cls, context):
-        return scan_problem(context) is None and bool(landmarks.get_landmarks(settings(context).scan))
+        problem = scan_problem(context)
+        if problem is None and not landmarks.get_landmarks(settings(context).scan):
+            problem = "no landmarks on the scan to export"
+        return poll_with_message(cls, problem)
 
     def execute(self, context):
         from ..core import meshio
@@ -171,7 +219,7 @@ class HEADADAPT_OT_suggest_landmarks(_Base, bpy.types.Operator):
 
     @classmethod
     def poll(cls, context):
-        return calibration_ready(context)
+        return poll_with_message(cls, landmark_problem(context))
 
     def execute(self, context):
         from ..core.adapt import suggest
@@ -193,7 +241,9 @@ class HEADADAPT_OT_accept_suggestions(_Base, bpy.types.Operator):
     @classmethod
     def poll(cls, context):
         scan = settings(context).scan
-        return scan is not None and bool(landmarks.get_landmarks(scan, landmarks.SUGGESTED_PROP))
+        if scan is None or not landmarks.get_landmarks(scan, landmarks.SUGGESTED_PROP):
+            return poll_with_message(cls, "no suggestions yet: press Suggest the Rest first")
+        return True
 
     def execute(self, context):
         scan = settings(context).scan
@@ -213,29 +263,120 @@ class HEADADAPT_OT_calibrate(_Base, bpy.types.Operator):
 
     @classmethod
     def poll(cls, context):
-        return calibration_ready(context)
+        return poll_with_message(cls, landmark_problem(context))
 
     def execute(self, context):
-        from ..core.adapt import calibration
+        from ..core.adapt import pipeline
         s = settings(context)
-        pts = landmarks.get_landmarks(s.scan)
-        tpl_pts = template().fdp_points()
-        try:
-            given = calibration.validate_landmarks(pts, what=f"scan {s.scan.name!r}")
-            given = {k: v for k, v in given.items() if k in tpl_pts}
-            sim, info = calibration.calibrate(given, tpl_pts, method=s.calibration)
+        problem = landmark_problem(context)
+        if problem:
+            return self.fail(problem)
+        scan, verts, tris = _scan_arrays(context)
+        pts = landmarks.get_landmarks(scan)
+        s.calibration_rms_mm = -1.0
+        try:       # the batch's own step 1: labels put right, the similarity, every click on the scan
+            fit, _tpl_fdps, q_fdp, sim, info = pipeline.calibrate(template(), verts, tris, pts,
+                                                                  adapt_options(s))
+            pipeline.check_on_surface(fit.scan, q_fdp, fit.options)
         except HeadAdaptError as exc:
-            return self.fail(str(exc))
-        s.calibration_rms_mm = info["rms"] * 1000.0
+            hint = unit_hint(verts, pts)
+            return self.fail(str(exc) + (f"; {hint}" if hint else ""))
+        rms_mm = info["rms"] * 1000.0
+        head_mm = head_size_mm()
+        if rms_mm > CALIBRATION_RMS_LIMIT * head_mm:
+            return self.fail(f"the landmarks do not fit the template's face: calibration RMS {rms_mm:.1f} mm is "
+                             f"{100 * rms_mm / head_mm:.0f}% of the head's width ({head_mm:.0f} mm; limit "
+                             f"{100 * CALIBRATION_RMS_LIMIT:.0f}%): FDPs given the wrong names, or a mirrored scan")
+        s.calibration_rms_mm = rms_mm
         s.scan["headadapt_calibration"] = json.dumps({"matrix": sim.matrix4().tolist(), **{
             k: v for k, v in info.items() if k != "residuals"}}, default=float)
-        self.report({"INFO"}, f"calibrated ({info['method']}): RMS {s.calibration_rms_mm:.2f} mm over "
-                              f"{len(given)} FDPs, scale {sim.scale:.4g}")
+        notes = info["handedness"]["notes"]
+        msg = (f"calibrated ({info['method']}): RMS {rms_mm:.2f} mm over {len(q_fdp)} FDPs "
+               f"({100 * rms_mm / head_mm:.1f}% of the head's width), scan unit = {1000 * sim.scale:.4g} mm")
+        if notes:
+            self.report({"WARNING"}, msg + "; " + "; ".join(notes))
+        else:
+            self.report({"INFO"}, msg)
         return {"FINISHED"}
 
 
+CALIBRATION_RMS_LIMIT = 0.05     # of the head's width: people's faces differ from the template's by 1-3%
+
+
+def head_size_mm():
+    """The template head's width (ear to ear), mm: what calibration residuals are judged against."""
+    return float(template().skin.verts[:, 0].ptp()) * 1000.0
+
+
+def unit_hint(verts, pts):
+    """A sentence naming a unit mismatch when the landmarks' spread and the scan's size differ by more
+    than a factor of 5 (clicks span about 2/3 of a head scan), else ''."""
+    import numpy as np
+    p = np.array(list(pts.values()), dtype=float).reshape(-1, 3)
+    if len(p) < 2 or len(verts) == 0 or not np.isfinite(p).all():
+        return ""
+    ratio = float(np.ptp(verts, axis=0).max()) / max(float(np.ptp(p, axis=0).max()), 1e-12) / 1.5
+    if 0.2 < ratio < 5.0:
+        return ""
+    power = round(float(np.log10(ratio)))
+    return (f"the landmarks are about 10^{power} times {'smaller' if power > 0 else 'larger'} than the scan: "
+            "they are in another unit (mm, cm, m?) or belong to another scan")
+
+
+def adapt_options(s, levels=-1):
+    """The AdaptOptions of the scene settings s (levels >= 0 overrides s.max_levels): the one place the
+    panels make their options, from the same fields and defaults as the batch (batch.adapt_options)."""
+    from ..batch import adapt_options as batch_options
+    return batch_options(levels=s.max_levels if levels < 0 else levels, calibration=s.calibration,
+                         keep_flagged=not s.drop_flagged)
+
+
+def show_progress(context, fraction, message):
+    """Progress of a long operator: the window manager's bar (cursor), the status bar's text, and the
+    scene setting progress_text the panels (and tests) read."""
+    context.window_manager.progress_update(int(100 * fraction))
+    text = f"HeadAdapt: {100 * fraction:.0f}% {message}" if message else ""
+    context.scene.headadapt.progress_text = text
+    if context.workspace is not None:
+        context.workspace.status_text_set(text or None)
+
+
+class _Progress:
+    """with _Progress(context) as say: say(fraction, message) ... ; the bar and the status text end with it."""
+
+    def __init__(self, context):
+        self.context = context
+
+    def __enter__(self):
+        self.context.window_manager.progress_begin(0, 100)
+        return lambda f, msg: show_progress(self.context, f, msg)
+
+    def __exit__(self, *exc):
+        self.context.window_manager.progress_end()
+        self.context.scene.headadapt.progress_text = ""
+        if self.context.workspace is not None:
+            self.context.workspace.status_text_set(None)
+        return False
+
+
+def remove_result(root):
+    """Delete a result hierarchy (the root, everything under it, their meshes and curves) and its
+    collection when that is left empty."""
+    objs = [root, *root.children_recursive]
+    colls = {c for o in objs for c in o.users_collection}
+    datas = [o.data for o in objs if o.data is not None]
+    for o in objs:
+        bpy.data.objects.remove(o, do_unlink=True)
+    for d in datas:
+        if d.users == 0:
+            (bpy.data.meshes if isinstance(d, bpy.types.Mesh) else bpy.data.curves).remove(d)
+    for c in colls:
+        if c.name in bpy.data.collections and not c.all_objects:
+            bpy.data.collections.remove(c)
+
+
 class HEADADAPT_OT_adapt(_Base, bpy.types.Operator):
-    """Adapt the template onto the scan level by level; the result goes to a new 'HeadAdapt result' collection"""
+    """Adapt the template onto the scan level by level; the result replaces the previous one (or is kept beside it)"""
     bl_idname = "headadapt.adapt"
     bl_label = "Adapt"
     levels: bpy.props.IntProperty(name="Levels", default=-1, min=-1, max=8,
@@ -243,35 +384,37 @@ class HEADADAPT_OT_adapt(_Base, bpy.types.Operator):
 
     @classmethod
     def poll(cls, context):
-        return calibration_ready(context)
+        return poll_with_message(cls, landmark_problem(context))
 
     def execute(self, context):
+        import time
+
         from ..blender import blendout
-        from ..core.adapt import AdaptOptions, adapt
+        from ..core.adapt import adapt
         from ..core.adapt import outcome as outcome_text
         s = settings(context)
-        problem = scan_problem(context)
+        problem = landmark_problem(context)
         if problem:
             return self.fail(problem)
+        t0 = time.perf_counter()
         scan, verts, tris = _scan_arrays(context)
         pts = landmarks.get_landmarks(scan)
-        wm = context.window_manager
-        wm.progress_begin(0, 100)
-        try:
-            opts = AdaptOptions(max_levels=s.max_levels if self.levels < 0 else self.levels,
-                                calibration=s.calibration, drop_flagged=s.drop_flagged)
-            result = adapt(template(), verts, tris, pts, opts,
-                           progress=lambda f, msg: wm.progress_update(int(100 * f)))
-        except HeadAdaptError as exc:
-            return self.fail(str(exc))
-        finally:
-            wm.progress_end()
-        report = result.report()
+        with _Progress(context) as say:
+            try:
+                result = adapt(template(), verts, tris, pts, adapt_options(s, self.levels), progress=say)
+            except HeadAdaptError as exc:
+                return self.fail(str(exc))
+            say(1.0, "building the result objects")
+            report = result.report()
+            old = s.result_root
+            if old is not None and not s.keep_results and old.name in bpy.data.objects:
+                remove_result(old)
+            root = blendout.build_result_objects(template(), result, context.scene, scan.matrix_world,
+                                                 name=scan.name)
         s.report_json = json.dumps(report, default=float)
-        root = blendout.build_result_objects(template(), result, context.scene, scan.matrix_world)
         s.result_root = root
         msg = (f"adapted: best level {result.best_level}, {outcome_text.verdict(result.outcome)}, "
-               f"{result.seconds:.2f} s")
+               f"{time.perf_counter() - t0:.1f} s")
         turned = result.calibration_info.get("scan_pieces_turned", 0)
         if turned:
             msg += f"; {turned} scan piece(s) faced inward and were read turned round"
@@ -297,7 +440,9 @@ class HEADADAPT_OT_bake_expressions(_Base, bpy.types.Operator):
 
     @classmethod
     def poll(cls, context):
-        return head_root(context) is not None
+        if head_root(context) is None:
+            return poll_with_message(cls, "no head in the scene: add the template or adapt first")
+        return True
 
     def execute(self, context):
         from ..blender import blendout
@@ -306,15 +451,12 @@ class HEADADAPT_OT_bake_expressions(_Base, bpy.types.Operator):
             return self.fail("no head: add the template or adapt first")
         if not self.sets:
             return self.fail("choose at least one set to bake")
-        wm = context.window_manager
-        wm.progress_begin(0, 100)
-        try:
-            timing = blendout.bake_result(template(), root, kinds=tuple(self.sets), preview=self.preview,
-                                          progress=lambda f, _name: wm.progress_update(int(100 * f)))
-        except HeadAdaptError as exc:
-            return self.fail(str(exc))
-        finally:
-            wm.progress_end()
+        with _Progress(context) as say:
+            try:
+                timing = blendout.bake_result(template(), root, kinds=tuple(self.sets), preview=self.preview,
+                                              progress=lambda f, name: say(f, f"baking {name}"))
+            except HeadAdaptError as exc:
+                return self.fail(str(exc))
         self.report({"INFO"}, f"baked {timing['keys']} shape keys on {root.name!r} "
                               f"({timing['per_key_s'] * 1000:.0f} ms per key)")
         return {"FINISHED"}
@@ -329,7 +471,9 @@ class HEADADAPT_OT_import_fap(_Base, ImportHelper, bpy.types.Operator):
 
     @classmethod
     def poll(cls, context):
-        return head_root(context) is not None
+        if head_root(context) is None:
+            return poll_with_message(cls, "no head in the scene: add the template or adapt first")
+        return True
 
     def execute(self, context):
         from ..blender import animation

@@ -48,13 +48,16 @@ def draw_scan(layout, context):
 def draw_landmarks(layout, context):
     s = _settings(context)
     pts = landmarks.get_landmarks(s.scan)
-    missing_cal = [k for k in mpeg4.CALIBRATION_FDPS if k not in pts]
+    from .operators import landmark_problem
     col = layout.column()
     col.enabled = s.scan is not None
     col.label(text=f"{len(pts)} of {len(mpeg4.FDPS)} FDPs placed")
-    col.label(text=("Calibration FDPs: all placed" if not missing_cal else
-                    "Calibration needs: " + ", ".join(missing_cal)),
-              icon="CHECKMARK" if not missing_cal else "ERROR")
+    problem = landmark_problem(context) if s.scan is not None else None
+    if problem is None and s.scan is not None:
+        col.label(text="Enough to calibrate and adapt", icon="CHECKMARK")
+    elif problem:
+        for i, part in enumerate(textwrap.wrap(problem[:1].upper() + problem[1:], 60)):
+            col.label(text=part, icon="ERROR" if i == 0 else "BLANK1")
     col.prop(s, "active_fdp")
     col.label(text=mpeg4.FDPS[s.active_fdp].label)
     col.operator("headadapt.pick_landmarks", icon="RESTRICT_SELECT_OFF")
@@ -65,7 +68,7 @@ def draw_landmarks(layout, context):
     row.operator("headadapt.import_landmarks", icon="IMPORT")
     row.operator("headadapt.export_landmarks", icon="EXPORT")
     box = col.box().column(align=True)
-    for name in mpeg4.CALIBRATION_FDPS + tuple(k for k in pts if k not in mpeg4.CALIBRATION_FDPS):
+    for name in mpeg4.CLICKS_8 + tuple(k for k in pts if k not in mpeg4.CLICKS_8):
         row = box.row(align=True)
         row.label(text=f"{name}  {mpeg4.FDPS[name].label}", icon="CHECKMARK" if name in pts else "BLANK1")
         if name in pts:
@@ -87,6 +90,9 @@ def draw_adapt(layout, context):
     row = layout.row(align=True)
     row.operator("headadapt.adapt", text="Adapt All Levels", icon="PLAY").levels = -1
     row.operator("headadapt.adapt", text="Level 0 Only").levels = 0
+    layout.prop(s, "keep_results")
+    if s.progress_text:
+        layout.label(text=s.progress_text, icon="TIME")
     if s.result_root is not None:
         layout.label(text=f"Result: {s.result_root.name}", icon="CHECKMARK")
 
@@ -118,14 +124,14 @@ def draw_report(layout, context):
         layout.label(text="No adaptation yet")
         return
     rep = json.loads(s.report_json)
-    grid = layout.grid_flow(columns=5, even_columns=True, align=True)
-    for head in ("Level", "Pairs", "E_d", "E", "s"):
-        grid.label(text=head)
-    for lv in rep["levels"]:
-        mark = "*" if lv["level"] == rep["best_level"] else ""
-        for cell in (f"{lv['level']}{mark}", str(lv["pairs"]), f"{lv['E_d']:.3f}", f"{lv['E']:.3f}",
-                     f"{lv['seconds']:.2f}"):
-            grid.label(text=cell)
+    table = layout.column(align=True)
+    for cells in report_rows(rep):      # one row per level: read across, as a table is read
+        row = table.row(align=True)
+        for cell in cells:
+            row.label(text=cell)
+    dropped = rep.get("dropped_fdps") or []
+    layout.label(text="Dropped clicks: " + (", ".join(dropped) if dropped else "none"),
+                 icon="X" if dropped else "CHECKMARK")
     layout.label(text=rep.get("stopped_because", ""))
     outcome = rep.get("outcome")
     if outcome:
@@ -137,6 +143,20 @@ def draw_report(layout, context):
         for i, part in enumerate(textwrap.wrap(line, 60)):     # the sidebar is narrow: wrap, do not cut
             layout.label(text=part, icon="ERROR" if i == 0 else "BLANK1")
     layout.label(text="Heat map: colour attribute 'HeadAdapt distance' (Solid, Attribute)")
+
+
+def report_rows(rep):
+    """The Report panel's level table as rows of cells, the header first (units in it); the best level
+    starred; E_m (held-out markers, mm^2) only where markers were given."""
+    markers = any(lv.get("E_m") is not None for lv in rep["levels"])
+    rows = [["Level", "Pairs", "E_d mm²", "RMS mm", *(["E_m mm²"] if markers else []), "E mm²", "Time s"]]
+    for lv in rep["levels"]:
+        rms = lv.get("E_d_rms_mm")
+        rows.append([f"{lv['level']}{'*' if lv['level'] == rep['best_level'] else ''}", str(lv["pairs"]),
+                     f"{lv['E_d']:.3f}", "-" if rms is None else f"{rms:.2f}",
+                     *([f"{lv['E_m']:.2f}" if lv.get("E_m") is not None else "-"] if markers else []),
+                     f"{lv['E']:.3f}", f"{lv['seconds']:.1f}"])
+    return rows
 
 
 DRAW = {"TEMPLATE": draw_template, "SCAN": draw_scan, "LANDMARKS": draw_landmarks,

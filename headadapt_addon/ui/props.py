@@ -30,6 +30,11 @@ class HeadAdaptSettings(bpy.types.PropertyGroup):
                                          description="Drop FDPs flagged as wrongly clicked and refit")
     calibration_rms_mm: bpy.props.FloatProperty(name="Calibration RMS (mm)", default=-1.0)
     report_json: bpy.props.StringProperty(name="Report", default="")
+    keep_results: bpy.props.BoolProperty(name="Keep earlier results", default=False,
+                                         description="Adapt adds a new result beside the earlier ones "
+                                                     "instead of replacing the last")
+    progress_text: bpy.props.StringProperty(name="Progress", default="",
+                                            description="What a running Adapt or Bake is doing")
 
 
 def register():

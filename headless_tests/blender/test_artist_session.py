@@ -1,0 +1,290 @@
+"""Issue 17, the artist's session: the panels accept what the batch accepts and say why a button is
+greyed; one options object for both; the Report table read row by row; progress while working;
+Adapt replaces its last result; the batch's .blend is recognised; bad landmarks refused."""
+import json
+
+import numpy as np
+import pytest
+
+import headadapt_addon
+from headadapt_addon.batch import SAMPLE_DIR
+from headadapt_addon.core import meshio
+
+
+@pytest.fixture
+def ui_scene():
+    """Factory startup (with a window and a 3D view), the add-on registered; yields an override dict."""
+    import bpy
+
+    bpy.ops.wm.read_homefile(use_empty=False, use_factory_startup=True)
+    for obj in list(bpy.data.objects):
+        bpy.data.objects.remove(obj)
+    headadapt_addon.register()
+    win = bpy.context.window_manager.windows[0]
+    area = next(a for a in win.screen.areas if a.type == "VIEW_3D")
+    yield {"window": win, "screen": win.screen, "area": area}
+    headadapt_addon.unregister()
+
+
+def _sample_scan(name="scan"):
+    import bpy
+
+    from headadapt_addon.blender import bridge
+
+    v, t = meshio.read_mesh(SAMPLE_DIR / "scan.ply")
+    obj = bpy.data.objects.new(name, bridge.new_mesh(name, v, t))
+    bpy.context.scene.collection.objects.link(obj)
+    bpy.context.scene.headadapt.scan = obj
+    return obj
+
+
+def _greyed_because(op):
+    """The poll message of a greyed operator (bpy.ops raises it), or None when it can run."""
+    if op.poll():
+        return None
+    with pytest.raises(RuntimeError) as err:
+        op()
+    return str(err.value).split("poll()", 1)[1].strip()
+
+
+def test_buttons_enable_on_the_batch_minimum_and_say_why_when_greyed(ui_scene):
+    import bpy
+
+    from headadapt_addon.blender import landmarks
+    from headadapt_addon.core import mpeg4
+
+    ops = bpy.ops.headadapt
+    with bpy.context.temp_override(**ui_scene):
+        for op in (ops.calibrate, ops.suggest_landmarks, ops.adapt):
+            assert "no scan selected" in _greyed_because(op).lower()
+        assert "no suggestions yet" in _greyed_because(ops.accept_suggestions).lower()
+        assert "no head in the scene" in _greyed_because(ops.import_fap).lower()
+        assert "no head in the scene" in _greyed_because(ops.bake_expressions).lower()
+        scan = _sample_scan()
+        assert "no landmarks on 'scan'" in _greyed_because(ops.adapt).lower()
+        assert "no landmarks on the scan to export" in _greyed_because(ops.export_landmarks).lower()
+        clicks = meshio.read_landmarks(SAMPLE_DIR / "landmarks.json")
+        # three clicks: the batch's minimum is four (calibration.MIN_FDPS)
+        landmarks.set_landmarks(scan, {k: clicks[k] for k in ("3.7", "3.12", "9.3")})
+        for op in (ops.calibrate, ops.suggest_landmarks, ops.adapt):
+            assert "at least 4" in _greyed_because(op), op
+        # the 8 front clicks, none of the paper's ear or hairline FDPs: as the batch, all three run
+        landmarks.set_landmarks(scan, {k: clicks[k] for k in mpeg4.CLICKS_8})
+        assert not set(mpeg4.CLICKS_8) >= set(mpeg4.CALIBRATION_FDPS)
+        for op in (ops.calibrate, ops.suggest_landmarks, ops.adapt):
+            assert _greyed_because(op) is None, op
+        # the paper's method does need its 8: the message names them and the way out
+        bpy.context.scene.headadapt.calibration = "paper"
+        why = _greyed_because(ops.adapt)
+        assert "paper's calibration needs FDP 2.1" in why and "10.9" in why and "Least squares" in why
+        bpy.context.scene.headadapt.calibration = "auto"
+        # a NaN that got into the stored landmarks: greyed, the FDP named
+        bad = {k: clicks[k] for k in mpeg4.CLICKS_8}
+        bad["9.3"] = np.array([np.nan, 0.0, 0.0])
+        landmarks.set_landmarks(scan, bad)
+        assert "FDP 9.3" in _greyed_because(ops.adapt) and "NaN" in _greyed_because(ops.calibrate)
+        # one spot clicked twice
+        landmarks.set_landmarks(scan, {**{k: clicks[k] for k in mpeg4.CLICKS_8}, "9.15": clicks["9.3"]})
+        assert "same spot" in _greyed_because(ops.adapt)
+
+
+def test_the_panels_and_the_batch_build_the_same_options(ui_scene):
+    import bpy
+
+    from headadapt_addon import batch
+    from headadapt_addon.core.adapt import AdaptOptions
+    from headadapt_addon.ui import operators
+
+    s = bpy.context.scene.headadapt
+    assert operators.adapt_options(s) == batch.adapt_options() == AdaptOptions()
+    s.max_levels, s.calibration, s.drop_flagged = 2, "umeyama", False
+    assert operators.adapt_options(s) == batch.adapt_options(2, "umeyama", keep_flagged=True)
+    assert operators.adapt_options(s, levels=0).max_levels == 0
+
+
+def test_landmark_file_with_nan_is_refused_by_the_operator(ui_scene, tmp_path):
+    import bpy
+
+    from headadapt_addon.blender import landmarks
+
+    with bpy.context.temp_override(**ui_scene):
+        scan = _sample_scan()
+        landmarks.set_landmarks(scan, {"3.7": [1.0, 2.0, 3.0]})
+        path = tmp_path / "nan.json"
+        path.write_text('{"points": {"3.7": [NaN, 0, 0], "3.12": [1, 2, 3], "9.3": [0, 1, 0], "2.10": [0, 0, 1]}}')
+        with pytest.raises(RuntimeError, match="NaN|not a number|finite"):
+            bpy.ops.headadapt.import_landmarks(filepath=str(path))
+        assert list(landmarks.get_landmarks(scan)) == ["3.7"]          # unchanged
+
+
+def test_calibrate_names_a_unit_error_and_wrong_names(ui_scene):
+    import bpy
+
+    from headadapt_addon.blender import landmarks
+
+    clicks = meshio.read_landmarks(SAMPLE_DIR / "landmarks.json")
+    with bpy.context.temp_override(**ui_scene):
+        scan = _sample_scan()
+        s = bpy.context.scene.headadapt
+        # the clicks in cm on a scan in mm: the calibration alone fits them (a similarity finds any
+        # scale), but they are not on the scan; refused, the unit named, no tick
+        landmarks.set_landmarks(scan, {k: v / 10.0 for k, v in clicks.items()})
+        with pytest.raises(RuntimeError, match="another unit"):
+            bpy.ops.headadapt.calibrate()
+        assert s.calibration_rms_mm < 0 and "headadapt_calibration" not in scan
+        # FDPs given each other's names (nose tip and chin, eye and mouth corners): judged against the
+        # head's width, refused
+        wrong = dict(clicks)
+        for a, b in (("9.3", "2.10"), ("3.7", "8.4"), ("3.12", "8.3")):
+            wrong[a], wrong[b] = clicks[b], clicks[a]
+        landmarks.set_landmarks(scan, {k: wrong[k] for k in ("9.3", "2.10", "3.7", "8.4", "3.12", "8.3",
+                                                             "3.11", "3.8")})
+        with pytest.raises(RuntimeError, match="head's width.*wrong names"):
+            bpy.ops.headadapt.calibrate()
+        assert s.calibration_rms_mm < 0
+        # the right clicks: a tick, the RMS a small part of the head's width
+        landmarks.set_landmarks(scan, clicks)
+        assert bpy.ops.headadapt.calibrate() == {"FINISHED"}
+        assert 0 <= s.calibration_rms_mm < 10 and "headadapt_calibration" in scan
+
+
+def test_a_blend_written_by_the_batch_is_recognised(ui_scene):
+    """The batch does not register the add-on: its .blend has no scene settings, only tagged objects."""
+    import bpy
+
+    from headadapt_addon.blender import scene
+    from headadapt_addon.core.template import bundled_template
+
+    with bpy.context.temp_override(**ui_scene):
+        assert not bpy.ops.headadapt.import_fap.poll()
+        root = scene.add_template(bundled_template(), bpy.context.scene.collection, name="HA Adapted head")
+        root["headadapt_part"] = "result_root"           # as blendout.build_result_objects tags it
+        assert bpy.context.scene.headadapt.result_root is None
+        assert scene.head_root(bpy.context) == root
+        assert bpy.ops.headadapt.import_fap.poll() and bpy.ops.headadapt.bake_expressions.poll()
+
+
+class _Layout:
+    """A stand-in UILayout that keeps its structure: rows, columns and boxes are children."""
+
+    def __init__(self, kind="layout"):
+        self.kind, self.children, self.enabled = kind, [], True
+
+    def _child(self, kind):
+        node = _Layout(kind)
+        self.children.append(node)
+        return node
+
+    def row(self, **_kw):
+        return self._child("row")
+
+    def column(self, **_kw):
+        return self._child("column")
+
+    def box(self, **_kw):
+        return self._child("box")
+
+    def grid_flow(self, **_kw):
+        return self._child("grid")
+
+    def label(self, text="", icon=None, **_kw):
+        self.children.append(("label", text, icon))
+
+    def operator(self, *_a, **_kw):
+        return type("OpProps", (), {})()
+
+    def prop(self, *_a, **_kw):
+        pass
+
+    def rows(self):
+        """[[label text, ...] per row] anywhere under this layout, in drawing order."""
+        out = []
+        for child in self.children:
+            if isinstance(child, _Layout):
+                if child.kind == "row":
+                    out.append([c[1] for c in child.children if isinstance(c, tuple)])
+                out += child.rows()
+        return out
+
+    def labels(self):
+        out = []
+        for child in self.children:
+            out += child.labels() if isinstance(child, _Layout) else [child[1:]]
+        return out
+
+
+def test_report_table_reads_row_by_row_with_units(ui_scene):
+    import bpy
+
+    from headadapt_addon.ui import panels
+
+    rep = {"levels": [{"level": 0, "pairs": 74, "E_d": 7.1, "E_d_rms_mm": 2.61, "E_m": 3.2, "E": 7.13,
+                       "seconds": 0.52},
+                      {"level": 1, "pairs": 912, "E_d": 0.4, "E_d_rms_mm": 0.61, "E_m": 1.1, "E": 0.411,
+                       "seconds": 2.04}],
+           "best_level": 1, "stopped_because": "last level reached", "flagged_fdps": {"5.1": "far off"},
+           "dropped_fdps": ["5.1"],
+           "outcome": {"folds_left": 0, "seen_rms_mm": 0.6, "seen_vertices": 2000, "marker_rms_mm": 1.05,
+                       "warnings": [], "ok": True}}
+    bpy.context.scene.headadapt.report_json = json.dumps(rep)
+    layout = _Layout()
+    panels.draw_report(layout, bpy.context)
+    rows = layout.rows()
+    assert rows[0] == ["Level", "Pairs", "E_d mm²", "RMS mm", "E_m mm²", "E mm²", "Time s"]
+    assert rows[1] == ["0", "74", "7.100", "2.61", "3.20", "7.130", "0.5"]
+    assert rows[2] == ["1*", "912", "0.400", "0.61", "1.10", "0.411", "2.0"]      # the best level starred
+    texts = [t for t, _icon in layout.labels()]
+    assert ("Dropped clicks: 5.1", "X") in layout.labels()
+    assert "marker RMS 1.05 mm" in texts                                  # the held-out markers' error
+    # no markers given: no E_m column; nothing dropped
+    for lv in rep["levels"]:
+        lv["E_m"] = None
+    rep["dropped_fdps"], rep["outcome"]["marker_rms_mm"] = [], None
+    bpy.context.scene.headadapt.report_json = json.dumps(rep)
+    layout = _Layout()
+    panels.draw_report(layout, bpy.context)
+    assert layout.rows()[0] == ["Level", "Pairs", "E_d mm²", "RMS mm", "E mm²", "Time s"]
+    assert all(len(r) == 6 for r in layout.rows())
+    assert ("Dropped clicks: none", "CHECKMARK") in layout.labels()
+
+
+@pytest.mark.slow
+def test_adapt_reports_progress_and_replaces_its_last_result(ui_scene, monkeypatch):
+    import bpy
+
+    from headadapt_addon.blender import landmarks
+    from headadapt_addon.ui import operators
+
+    seen = []
+    original = operators.show_progress
+
+    def record(context, fraction, message):
+        original(context, fraction, message)
+        seen.append((fraction, message, context.scene.headadapt.progress_text))
+
+    monkeypatch.setattr(operators, "show_progress", record)
+    with bpy.context.temp_override(**ui_scene):
+        scan = _sample_scan("Anna")
+        landmarks.set_landmarks(scan, meshio.read_landmarks(SAMPLE_DIR / "landmarks.json"))
+        assert bpy.ops.headadapt.adapt(levels=1) == {"FINISHED"}
+        # progress: rising fractions, each shown as the status text while it runs, cleared after
+        fractions = [f for f, _m, _t in seen]
+        assert len(seen) >= 4 and fractions == sorted(fractions) and fractions[-1] == 1.0
+        assert any("level 1" in m for _f, m, _t in seen)
+        assert all(t.startswith("HeadAdapt: ") and m in t for _f, m, t in seen)
+        assert bpy.context.scene.headadapt.progress_text == ""
+        root = bpy.context.scene.headadapt.result_root
+        assert root.name == "Anna adapted"
+        names = {o.name for o in root.children_recursive}
+        assert {"Anna skin", "Anna cranium", "Anna mandible"} <= names
+        n_objects, n_meshes = len(bpy.data.objects), len(bpy.data.meshes)
+        # again: the last result is replaced, same names, nothing piles up
+        assert bpy.ops.headadapt.adapt(levels=0) == {"FINISHED"}
+        assert (len(bpy.data.objects), len(bpy.data.meshes)) == (n_objects, n_meshes)
+        assert bpy.context.scene.headadapt.result_root.name == "Anna adapted"
+        assert "Anna skin" in bpy.data.objects and "Anna skin.001" not in bpy.data.objects
+        assert len([c for c in bpy.data.collections if c.name.startswith("HeadAdapt result")]) == 1
+        # keep earlier results: a second hierarchy beside the first
+        bpy.context.scene.headadapt.keep_results = True
+        assert bpy.ops.headadapt.adapt(levels=0) == {"FINISHED"}
+        assert len(bpy.data.objects) == 2 * n_objects - 1                 # the scan once
