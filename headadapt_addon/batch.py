@@ -188,6 +188,7 @@ def run_adapt(scan_path, landmarks_path, out_dir, levels=None, calibration="auto
               "landmarks": str(landmarks_path)}
     try:
         verts, tris = meshio.read_mesh(scan_path)
+        verts = as_blender_stores(verts)
         points, meta = meshio.read_landmark_file(landmarks_path)
         markers = meta.get("markers")
         try:
@@ -218,6 +219,15 @@ def run_adapt(scan_path, landmarks_path, out_dir, levels=None, calibration="auto
         warn(f"headadapt: warning: {line}")
     log(f"headadapt: wrote {', '.join(str(p) for p in outputs.values())} in {report['total_seconds']:.2f} s")
     return report
+
+
+def as_blender_stores(verts):
+    """Scan vertices rounded to float32, as a Blender mesh stores them (float64 again for the fit):
+    the batch and the panels then start from the same numbers and give the same head. The rounding
+    is 1e-7 of the scan's size; the fit is not smooth in its input (closest-point pairs, the level
+    where E is least), and the unrounded coordinates moved the adapted skin by up to 1% of the head."""
+    import numpy as np
+    return np.asarray(verts, dtype=np.float32).astype(np.float64)
 
 
 def adapt_options(levels=None, calibration="auto", keep_flagged=False):

@@ -201,16 +201,22 @@ def test_batch_writes_a_blend_that_reopens_with_the_report(tmp_path):
                            "--blend", str(out / "head.blend")], capture_output=True, text=True)
     assert proc.returncode == 0, proc.stderr
     assert not list(out.glob(".*")), list(out.glob(".*"))          # no temporary or backup file left behind
+    # the bake (20-50 s) prints its progress: a line per tenth, ending at 100%
+    baking = [line for line in proc.stdout.splitlines() if line.strip().startswith("baking")]
+    assert 5 <= len(baking) <= 11 and "100.0%" in baking[-1], proc.stdout
     check = ("import bpy, json, sys; bpy.ops.wm.open_mainfile(filepath=sys.argv[1]);"
              "root = bpy.data.objects['HA Adapted head']; rep = json.loads(root['headadapt_report']);"
              "scan = bpy.data.objects['scan'];"
              "print('OK', len(rep['levels']), 'HeadAdapt report' in bpy.data.texts, 'headadapt_landmarks' in scan,"
              " len([o for o in root.children_recursive if o.type == 'MESH']));"
+             "cam = bpy.context.scene.camera; print('VIEW', cam.name, cam.type,"
+             " [o.type for o in bpy.data.objects if o.type == 'LIGHT']);"
              "skin = next(o for o in root.children_recursive if o.get('headadapt_part') == 'skin');"
              "kb = skin.data.shape_keys.key_blocks; print('KEYS', len(kb), 'joy' in kb, 'open_jaw' in kb,"
              " 'viseme_A' in kb, rep['bake']['keys'], bpy.context.scene.frame_end)")
     res = subprocess.run([sys.executable, "-c", check, str(out / "head.blend")], capture_output=True, text=True)
     assert "OK 2 True True 8" in res.stdout, res.stdout + res.stderr
+    assert "VIEW HeadAdapt camera CAMERA ['LIGHT']" in res.stdout, res.stdout       # renders without setup
     # shape keys: Basis + 6 expressions + 14 visemes + the skin FAPs; the preview action plays the six
     keys = res.stdout.split("KEYS")[1].split()
     assert int(keys[0]) > 1 + 6 + 14 + 40 and keys[1:4] == ["True", "True", "True"], res.stdout
