@@ -375,8 +375,133 @@ def remove_result(root):
             bpy.data.collections.remove(c)
 
 
+class Cancelled(Exception):
+    """Raised inside a Job's work at its next progress step after cancel()."""
+
+
+class Job:
+    """A core computation (numpy, no bpy) on a worker thread, so Blender's window stays responsive:
+    work(say) -> value, where say(fraction, message) reports progress and, after cancel(), stops the
+    work at its next step (Cancelled). Nothing in the scene changes until the caller uses .value."""
+
+    def __init__(self, work):
+        import threading
+        self.fraction, self.message, self.value, self.error = 0.0, "starting", None, None
+        self._cancel = threading.Event()
+        self._thread = threading.Thread(target=self._run, args=(work,), daemon=True)
+
+    def start(self):
+        self._thread.start()
+        return self
+
+    def _say(self, fraction, message):
+        if self._cancel.is_set():
+            raise Cancelled
+        self.fraction, self.message = fraction, message
+
+    def _run(self, work):
+        try:
+            self.value = work(self._say)
+        except BaseException as exc:       # handed to the main thread, which reports it
+            self.error = exc
+
+    def cancel(self):
+        self._cancel.set()
+
+    @property
+    def done(self):
+        return not self._thread.is_alive()
+
+    def wait(self, seconds=None):
+        self._thread.join(seconds)
+        return self.done
+
+
+class AdaptRun:
+    """One Adapt of the scene's scan: the fit and the anatomy transfer on a Job, the result objects
+    built in the main thread when it is done. The modal operator feeds it its events (step); Esc
+    cancels and leaves the scene as it was (no object is made before the end)."""
+
+    def __init__(self, context, levels=-1):
+        import time
+
+        from ..core.adapt import adapt
+        from ..core.anatomy import transfer
+        self.t0 = time.perf_counter()
+        s = settings(context)
+        self.scan, verts, tris = _scan_arrays(context)
+        pts = landmarks.get_landmarks(self.scan)
+        opts = adapt_options(s, levels)
+        tpl = template()
+
+        def work(say):
+            result = adapt(tpl, verts, tris, pts, opts, progress=lambda f, msg: say(0.9 * f, msg))
+            say(0.9, "carrying the anatomy along")
+            return result, transfer(tpl, result)
+
+        self.work = work
+        self.job = Job(work)
+
+    def step(self, context, event_type, report):
+        """Handle one event: ESC cancels, TIMER shows progress and finishes when the job is done;
+        returns the operator's answer. report(kind set, text) as Operator.report."""
+        if event_type == "ESC":
+            self.job.cancel()
+            self.end(context)
+            report({"WARNING"}, "Adapt cancelled: the scene is as it was")
+            return {"CANCELLED"}
+        if event_type != "TIMER":
+            return {"PASS_THROUGH"}
+        if not self.job.done:
+            show_progress(context, self.job.fraction, self.job.message)
+            return {"RUNNING_MODAL"}
+        if self.job.error is not None:
+            self.end(context)
+            if isinstance(self.job.error, HeadAdaptError):
+                report({"ERROR"}, str(self.job.error))
+                return {"CANCELLED"}
+            raise self.job.error
+        try:
+            return self.finish(context, *self.job.value, report)
+        finally:
+            self.end(context)
+
+    def end(self, context):
+        context.window_manager.progress_end()
+        context.scene.headadapt.progress_text = ""
+        if context.workspace is not None:
+            context.workspace.status_text_set(None)
+
+    def finish(self, context, result, anatomy, report):
+        """Build the result objects (replacing the last result unless kept), store the report, say how it went."""
+        import time
+
+        from ..blender import blendout
+        from ..core.adapt import outcome as outcome_text
+        s = settings(context)
+        show_progress(context, 1.0, "building the result objects")
+        old = s.result_root
+        if old is not None and not s.keep_results and old.name in bpy.data.objects:
+            remove_result(old)
+        root = blendout.build_result_objects(template(), result, context.scene, self.scan.matrix_world,
+                                             anatomy=anatomy, name=self.scan.name)
+        s.report_json = json.dumps(result.report(), default=float)
+        s.result_root = root
+        msg = (f"adapted: best level {result.best_level}, {outcome_text.verdict(result.outcome)}, "
+               f"{time.perf_counter() - self.t0:.1f} s")
+        turned = result.calibration_info.get("scan_pieces_turned", 0)
+        if turned:
+            msg += f"; {turned} scan piece(s) faced inward and were read turned round"
+        warnings = outcome_text.warning_lines(result.outcome, result.flagged, result.dropped)
+        if warnings:        # not ok (folds left, far from the scan) or flagged FDPs: say why (Report panel too)
+            report({"WARNING"}, msg + "; " + "; ".join(warnings))
+        else:
+            report({"INFO"}, msg)
+        return {"FINISHED"}
+
+
 class HEADADAPT_OT_adapt(_Base, bpy.types.Operator):
-    """Adapt the template onto the scan level by level; the result replaces the previous one (or is kept beside it)"""
+    """Adapt the template onto the scan level by level (Esc cancels); the result replaces the previous one (or is kept beside it)"""
     bl_idname = "headadapt.adapt"
     bl_label = "Adapt"
     levels: bpy.props.IntProperty(name="Levels", default=-1, min=-1, max=8,
@@ -386,44 +511,43 @@ class HEADADAPT_OT_adapt(_Base, bpy.types.Operator):
     def poll(cls, context):
         return poll_with_message(cls, landmark_problem(context))
 
-    def execute(self, context):
-        import time
-
-        from ..blender import blendout
-        from ..core.adapt import adapt
-        from ..core.adapt import outcome as outcome_text
-        s = settings(context)
+    def invoke(self, context, _event):
+        """From a button: the work on a thread, progress and Esc through a timer (modal)."""
+        if context.window is None:
+            return self.execute(context)
         problem = landmark_problem(context)
         if problem:
             return self.fail(problem)
-        t0 = time.perf_counter()
-        scan, verts, tris = _scan_arrays(context)
-        pts = landmarks.get_landmarks(scan)
-        with _Progress(context) as say:
-            try:
-                result = adapt(template(), verts, tris, pts, adapt_options(s, self.levels), progress=say)
-            except HeadAdaptError as exc:
-                return self.fail(str(exc))
-            say(1.0, "building the result objects")
-            report = result.report()
-            old = s.result_root
-            if old is not None and not s.keep_results and old.name in bpy.data.objects:
-                remove_result(old)
-            root = blendout.build_result_objects(template(), result, context.scene, scan.matrix_world,
-                                                 name=scan.name)
-        s.report_json = json.dumps(report, default=float)
-        s.result_root = root
-        msg = (f"adapted: best level {result.best_level}, {outcome_text.verdict(result.outcome)}, "
-               f"{time.perf_counter() - t0:.1f} s")
-        turned = result.calibration_info.get("scan_pieces_turned", 0)
-        if turned:
-            msg += f"; {turned} scan piece(s) faced inward and were read turned round"
-        warnings = outcome_text.warning_lines(result.outcome, result.flagged, result.dropped)
-        if warnings:        # not ok (folds left, far from the scan) or flagged FDPs: say why (Report panel too)
-            self.report({"WARNING"}, msg + "; " + "; ".join(warnings))
-        else:
-            self.report({"INFO"}, msg)
-        return {"FINISHED"}
+        self._run = AdaptRun(context, self.levels)
+        wm = context.window_manager
+        wm.progress_begin(0, 100)
+        self._timer = wm.event_timer_add(0.25, window=context.window)
+        wm.modal_handler_add(self)
+        self._run.job.start()
+        return {"RUNNING_MODAL"}
+
+    def modal(self, context, event):
+        answer = self._run.step(context, event.type, self.report)
+        if answer & {"FINISHED", "CANCELLED"}:
+            context.window_manager.event_timer_remove(self._timer)
+        return answer
+
+    def execute(self, context):
+        """From Python (bpy.ops, scripts): the same work, waited for."""
+        problem = landmark_problem(context)
+        if problem:
+            return self.fail(problem)
+        run = AdaptRun(context, self.levels)
+        context.window_manager.progress_begin(0, 100)
+        try:
+            value = run.work(lambda f, msg: show_progress(context, f, msg))
+        except HeadAdaptError as exc:
+            run.end(context)
+            return self.fail(str(exc))
+        try:
+            return run.finish(context, *value, self.report)
+        finally:
+            run.end(context)
 
 
 class HEADADAPT_OT_bake_expressions(_Base, bpy.types.Operator):

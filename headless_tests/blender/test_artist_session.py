@@ -288,3 +288,50 @@ def test_adapt_reports_progress_and_replaces_its_last_result(ui_scene, monkeypat
         bpy.context.scene.headadapt.keep_results = True
         assert bpy.ops.headadapt.adapt(levels=0) == {"FINISHED"}
         assert len(bpy.data.objects) == 2 * n_objects - 1                 # the scan once
+
+
+@pytest.mark.slow
+def test_adapt_from_a_button_works_on_a_thread_and_esc_leaves_the_scene_as_it_was(ui_scene):
+    """The button's modal path with stand-in events: a timer shows progress, Esc cancels."""
+    import time
+    from types import SimpleNamespace
+
+    import bpy
+
+    from headadapt_addon.blender import landmarks
+    from headadapt_addon.ui import operators
+
+    with bpy.context.temp_override(**ui_scene):
+        ctx, wm, s = bpy.context, bpy.context.window_manager, bpy.context.scene.headadapt
+        scan = _sample_scan()
+        landmarks.set_landmarks(scan, meshio.read_landmarks(SAMPLE_DIR / "landmarks.json"))
+        before = sorted(o.name for o in bpy.data.objects)
+        reports = []
+
+        def start(levels):
+            run = operators.AdaptRun(ctx, levels)
+            op = SimpleNamespace(_run=run, _timer=wm.event_timer_add(0.25, window=ctx.window),
+                                 report=lambda kind, text: reports.append((kind, text)))
+            wm.progress_begin(0, 100)
+            run.job.start()
+            return op, lambda kind: operators.HEADADAPT_OT_adapt.modal(op, ctx, SimpleNamespace(type=kind))
+
+        op, event = start(3)
+        assert event("MOUSEMOVE") == {"PASS_THROUGH"}             # the viewport stays usable
+        deadline = time.time() + 60
+        while not s.progress_text and time.time() < deadline:
+            assert event("TIMER") == {"RUNNING_MODAL"}
+            time.sleep(0.02)
+        assert s.progress_text.startswith("HeadAdapt: ")
+        assert event("ESC") == {"CANCELLED"}
+        assert op._run.job.wait(60) and isinstance(op._run.job.error, operators.Cancelled)
+        assert sorted(o.name for o in bpy.data.objects) == before and s.result_root is None
+        assert s.progress_text == "" and s.report_json == ""
+        assert reports[-1] == ({"WARNING"}, "Adapt cancelled: the scene is as it was")
+        # left to run, the same path ends with the result
+        op, event = start(1)
+        deadline = time.time() + 120
+        while (answer := event("TIMER")) == {"RUNNING_MODAL"} and time.time() < deadline:
+            time.sleep(0.05)
+        assert answer == {"FINISHED"} and s.result_root.name == "scan adapted" and s.progress_text == ""
+        assert reports[-1][0] == {"INFO"} and reports[-1][1].startswith("adapted: best level")
