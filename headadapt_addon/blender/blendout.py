@@ -91,6 +91,12 @@ def bake_result(tpl, root, kinds=("expression", "viseme", "fap"), preview=True, 
     if anatomy is None:
         anatomy = animation.stored_anatomy(tpl, root)
     keys, timing = bake.bake(tpl, anatomy, kinds=kinds, progress=progress)
+    return apply_bake(root, keys, timing, kinds, preview)
+
+
+def apply_bake(root, keys, timing, kinds, preview=True):
+    """Write baked keys (core.skin.bake.bake's) to root's shape keys (+ the preview action); timings.
+    The bake itself is numpy only: the panels run it on a worker thread and this in the main thread."""
     animation.write_shape_keys(root, keys)
     if preview and "expression" in kinds:
         animation.preview_action(root)

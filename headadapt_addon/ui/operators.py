@@ -341,24 +341,6 @@ def show_progress(context, fraction, message):
         context.workspace.status_text_set(text or None)
 
 
-class _Progress:
-    """with _Progress(context) as say: say(fraction, message) ... ; the bar and the status text end with it."""
-
-    def __init__(self, context):
-        self.context = context
-
-    def __enter__(self):
-        self.context.window_manager.progress_begin(0, 100)
-        return lambda f, msg: show_progress(self.context, f, msg)
-
-    def __exit__(self, *exc):
-        self.context.window_manager.progress_end()
-        self.context.scene.headadapt.progress_text = ""
-        if self.context.workspace is not None:
-            self.context.workspace.status_text_set(None)
-        return False
-
-
 def remove_result(root):
     """Delete a result hierarchy (the root, everything under it, their meshes and curves) and its
     collection when that is left empty."""
@@ -417,10 +399,93 @@ class Job:
         return self.done
 
 
-class AdaptRun:
+class _Run:
+    """A long operator's run: self.work(say) (numpy only) on a Job, self.finish(context, value, report)
+    in the main thread when it is done. The modal operator feeds it its events (step); Esc cancels
+    and leaves the scene as it was (nothing is written to the scene before finish)."""
+    what = "the work"
+
+    def step(self, context, event_type, report):
+        """Handle one event: ESC cancels, TIMER shows progress and finishes when the job is done;
+        returns the operator's answer. report(kind set, text) as Operator.report."""
+        if event_type == "ESC":
+            self.job.cancel()
+            self.end(context)
+            report({"WARNING"}, f"{self.what} cancelled: the scene is as it was")
+            return {"CANCELLED"}
+        if event_type != "TIMER":
+            return {"PASS_THROUGH"}
+        if not self.job.done:
+            show_progress(context, self.job.fraction, self.job.message)
+            return {"RUNNING_MODAL"}
+        if self.job.error is not None:
+            self.end(context)
+            if isinstance(self.job.error, HeadAdaptError):
+                report({"ERROR"}, str(self.job.error))
+                return {"CANCELLED"}
+            raise self.job.error
+        try:
+            return self.finish(context, self.job.value, report)
+        finally:
+            self.end(context)
+
+    def run_here(self, context, report):
+        """The same work in the calling thread, waited for (bpy.ops from scripts and tests)."""
+        context.window_manager.progress_begin(0, 100)
+        try:
+            value = self.work(lambda f, msg: show_progress(context, f, msg))
+        except HeadAdaptError as exc:
+            self.end(context)
+            report({"ERROR"}, str(exc))
+            return {"CANCELLED"}
+        try:
+            return self.finish(context, value, report)
+        finally:
+            self.end(context)
+
+    def end(self, context):
+        context.window_manager.progress_end()
+        context.scene.headadapt.progress_text = ""
+        if context.workspace is not None:
+            context.workspace.status_text_set(None)
+
+
+class _Modal:
+    """invoke/modal of an operator whose make_run(context) gives a _Run (or a problem string)."""
+
+    def invoke(self, context, _event):
+        """From a button: the work on a thread, progress and Esc through a timer."""
+        if context.window is None:
+            return self.execute(context)
+        run = self.make_run(context)
+        if isinstance(run, str):
+            return self.fail(run)
+        self._run = run
+        wm = context.window_manager
+        wm.progress_begin(0, 100)
+        self._timer = wm.event_timer_add(0.25, window=context.window)
+        wm.modal_handler_add(self)
+        run.job.start()
+        return {"RUNNING_MODAL"}
+
+    def modal(self, context, event):
+        answer = self._run.step(context, event.type, self.report)
+        if answer & {"FINISHED", "CANCELLED"}:
+            context.window_manager.event_timer_remove(self._timer)
+        return answer
+
+    def execute(self, context):
+        """From Python (bpy.ops, scripts): the same work, waited for."""
+        run = self.make_run(context)
+        if isinstance(run, str):
+            return self.fail(run)
+        return run.run_here(context, self.report)
+
+
+class AdaptRun(_Run):
     """One Adapt of the scene's scan: the fit and the anatomy transfer on a Job, the result objects
-    built in the main thread when it is done. The modal operator feeds it its events (step); Esc
-    cancels and leaves the scene as it was (no object is made before the end)."""
+    built in the main thread when it is done."""
+    what = "Adapt"
 
     def __init__(self, context, levels=-1):
         import time
@@ -442,39 +507,10 @@ class AdaptRun:
         self.work = work
         self.job = Job(work)
 
-    def step(self, context, event_type, report):
-        """Handle one event: ESC cancels, TIMER shows progress and finishes when the job is done;
-        returns the operator's answer. report(kind set, text) as Operator.report."""
-        if event_type == "ESC":
-            self.job.cancel()
-            self.end(context)
-            report({"WARNING"}, "Adapt cancelled: the scene is as it was")
-            return {"CANCELLED"}
-        if event_type != "TIMER":
-            return {"PASS_THROUGH"}
-        if not self.job.done:
-            show_progress(context, self.job.fraction, self.job.message)
-            return {"RUNNING_MODAL"}
-        if self.job.error is not None:
-            self.end(context)
-            if isinstance(self.job.error, HeadAdaptError):
-                report({"ERROR"}, str(self.job.error))
-                return {"CANCELLED"}
-            raise self.job.error
-        try:
-            return self.finish(context, *self.job.value, report)
-        finally:
-            self.end(context)
-
-    def end(self, context):
-        context.window_manager.progress_end()
-        context.scene.headadapt.progress_text = ""
-        if context.workspace is not None:
-            context.workspace.status_text_set(None)
-
-    def finish(self, context, result, anatomy, report):
+    def finish(self, context, value, report):
         """Build the result objects (replacing the last result unless kept), store the report, say how it went."""
         import time
+        result, anatomy = value
 
         from ..blender import blendout
         from ..core.adapt import outcome as outcome_text
@@ -500,7 +536,32 @@ class AdaptRun:
         return {"FINISHED"}
 
 
-class HEADADAPT_OT_adapt(_Base, bpy.types.Operator):
+class BakeRun(_Run):
+    """One Bake of the head's expressions: the simulation on a Job, the shape keys written at the end."""
+    what = "Bake"
+
+    def __init__(self, root, kinds, preview):
+        from ..blender import animation
+        from ..core.skin import bake
+        self.root, self.kinds, self.preview = root, kinds, preview
+        tpl, anatomy = template(), animation.stored_anatomy(template(), root)
+
+        def work(say):
+            return bake.bake(tpl, anatomy, kinds=kinds, progress=lambda f, name: say(f, f"baking {name}"))
+
+        self.work = work
+        self.job = Job(work)
+
+    def finish(self, context, value, report):
+        from ..blender import blendout
+        show_progress(context, 1.0, "writing the shape keys")
+        timing = blendout.apply_bake(self.root, *value, self.kinds, self.preview)
+        report({"INFO"}, f"baked {timing['keys']} shape keys on {self.root.name!r} "
+                         f"({timing['per_key_s'] * 1000:.0f} ms per key)")
+        return {"FINISHED"}
+
+
+class HEADADAPT_OT_adapt(_Modal, _Base, bpy.types.Operator):
     """Adapt the template onto the scan level by level (Esc cancels); the result replaces the previous one (or is kept beside it)"""
     bl_idname = "headadapt.adapt"
     bl_label = "Adapt"
@@ -511,47 +572,12 @@ class HEADADAPT_OT_adapt(_Base, bpy.types.Operator):
     def poll(cls, context):
         return poll_with_message(cls, landmark_problem(context))
 
-    def invoke(self, context, _event):
-        """From a button: the work on a thread, progress and Esc through a timer (modal)."""
-        if context.window is None:
-            return self.execute(context)
-        problem = landmark_problem(context)
-        if problem:
-            return self.fail(problem)
-        self._run = AdaptRun(context, self.levels)
-        wm = context.window_manager
-        wm.progress_begin(0, 100)
-        self._timer = wm.event_timer_add(0.25, window=context.window)
-        wm.modal_handler_add(self)
-        self._run.job.start()
-        return {"RUNNING_MODAL"}
-
-    def modal(self, context, event):
-        answer = self._run.step(context, event.type, self.report)
-        if answer & {"FINISHED", "CANCELLED"}:
-            context.window_manager.event_timer_remove(self._timer)
-        return answer
-
-    def execute(self, context):
-        """From Python (bpy.ops, scripts): the same work, waited for."""
-        problem = landmark_problem(context)
-        if problem:
-            return self.fail(problem)
-        run = AdaptRun(context, self.levels)
-        context.window_manager.progress_begin(0, 100)
-        try:
-            value = run.work(lambda f, msg: show_progress(context, f, msg))
-        except HeadAdaptError as exc:
-            run.end(context)
-            return self.fail(str(exc))
-        try:
-            return run.finish(context, *value, self.report)
-        finally:
-            run.end(context)
+    def make_run(self, context):
+        return landmark_problem(context) or AdaptRun(context, self.levels)
 
 
-class HEADADAPT_OT_bake_expressions(_Base, bpy.types.Operator):
-    """Simulate the skin for the chosen sets and bake them to shape keys, with a preview action"""
+class HEADADAPT_OT_bake_expressions(_Modal, _Base, bpy.types.Operator):
+    """Simulate the skin for the chosen sets and bake them to shape keys, with a preview action (Esc cancels)"""
     bl_idname = "headadapt.bake_expressions"
     bl_label = "Bake Expressions"
     sets: bpy.props.EnumProperty(
@@ -568,22 +594,13 @@ class HEADADAPT_OT_bake_expressions(_Base, bpy.types.Operator):
             return poll_with_message(cls, "no head in the scene: add the template or adapt first")
         return True
 
-    def execute(self, context):
-        from ..blender import blendout
+    def make_run(self, context):
         root = head_root(context)
         if root is None:
-            return self.fail("no head: add the template or adapt first")
+            return "no head: add the template or adapt first"
         if not self.sets:
-            return self.fail("choose at least one set to bake")
-        with _Progress(context) as say:
-            try:
-                timing = blendout.bake_result(template(), root, kinds=tuple(self.sets), preview=self.preview,
-                                              progress=lambda f, name: say(f, f"baking {name}"))
-            except HeadAdaptError as exc:
-                return self.fail(str(exc))
-        self.report({"INFO"}, f"baked {timing['keys']} shape keys on {root.name!r} "
-                              f"({timing['per_key_s'] * 1000:.0f} ms per key)")
-        return {"FINISHED"}
+            return "choose at least one set to bake"
+        return BakeRun(root, tuple(self.sets), self.preview)
 
 
 class HEADADAPT_OT_import_fap(_Base, ImportHelper, bpy.types.Operator):

@@ -335,3 +335,51 @@ def test_adapt_from_a_button_works_on_a_thread_and_esc_leaves_the_scene_as_it_wa
             time.sleep(0.05)
         assert answer == {"FINISHED"} and s.result_root.name == "scan adapted" and s.progress_text == ""
         assert reports[-1][0] == {"INFO"} and reports[-1][1].startswith("adapted: best level")
+
+
+@pytest.mark.slow
+def test_bake_reports_progress_and_esc_leaves_no_shape_keys(ui_scene, monkeypatch):
+    import time
+    from types import SimpleNamespace
+
+    import bpy
+
+    from headadapt_addon.ui import operators
+
+    seen = []
+    original = operators.show_progress
+
+    def record(context, fraction, message):
+        original(context, fraction, message)
+        seen.append((fraction, message, context.scene.headadapt.progress_text))
+
+    monkeypatch.setattr(operators, "show_progress", record)
+    with bpy.context.temp_override(**ui_scene):
+        ctx, wm, s = bpy.context, bpy.context.window_manager, bpy.context.scene.headadapt
+        assert bpy.ops.headadapt.add_template() == {"FINISHED"}
+        root = s.template_root
+        skin = next(o for o in root.children_recursive if o.get("headadapt_part") == "skin")
+        # from a button (modal, stand-in events): Esc while it bakes leaves no key behind
+        run = operators.BakeRun(root, ("expression",), True)
+        reports = []
+        op = SimpleNamespace(_run=run, _timer=wm.event_timer_add(0.25, window=ctx.window),
+                             report=lambda kind, text: reports.append((kind, text)))
+        wm.progress_begin(0, 100)
+        run.job.start()
+        deadline = time.time() + 120
+        while not s.progress_text.startswith("HeadAdapt: ") and time.time() < deadline:
+            assert operators.HEADADAPT_OT_bake_expressions.modal(op, ctx, SimpleNamespace(type="TIMER")) \
+                == {"RUNNING_MODAL"}
+            time.sleep(0.05)
+        assert operators.HEADADAPT_OT_bake_expressions.modal(op, ctx, SimpleNamespace(type="ESC")) == {"CANCELLED"}
+        assert run.job.wait(120) and isinstance(run.job.error, operators.Cancelled)
+        assert skin.data.shape_keys is None and s.progress_text == ""
+        assert reports[-1] == ({"WARNING"}, "Bake cancelled: the scene is as it was")
+        # through bpy.ops: progress per key, rising to the end, each shown as the status text
+        seen.clear()
+        assert bpy.ops.headadapt.bake_expressions(sets={"expression"}) == {"FINISHED"}
+        fractions = [f for f, _m, _t in seen]
+        assert fractions == sorted(fractions) and fractions[-1] == 1.0
+        assert {"baking joy", "baking surprise"} <= {m for _f, m, _t in seen}
+        assert all(t.startswith("HeadAdapt: ") and m in t for _f, m, t in seen)
+        assert "joy" in skin.data.shape_keys.key_blocks and s.progress_text == ""
