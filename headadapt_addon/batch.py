@@ -224,8 +224,9 @@ def run_adapt(scan_path, landmarks_path, out_dir, levels=None, calibration="auto
 def as_blender_stores(verts):
     """Scan vertices rounded to float32, as a Blender mesh stores them (float64 again for the fit):
     the batch and the panels then start from the same numbers and give the same head. The rounding
-    is 1e-7 of the scan's size; the fit is not smooth in its input (closest-point pairs, the level
-    where E is least), and the unrounded coordinates moved the adapted skin by up to 1% of the head."""
+    is 1e-7 of the scan's size, but the fit is not smooth in its input (closest-point pairs, the
+    level where E is least): on the four real scans the unrounded coordinates moved the adapted skin
+    by 0.3 to 1.7% of the scan's size (headsq CT 3.3 mm, Fran 1.4 mm), at the same best level."""
     import numpy as np
     return np.asarray(verts, dtype=np.float32).astype(np.float64)
 
