@@ -11,7 +11,7 @@ import numpy as np
 
 from . import geometry, mpeg4
 from .calibration import Similarity
-from .inside import winding_numbers
+from .winding import FastWinding
 
 # rigid parts and the FDPs that carry them (eq 25-28): x axis (a - b), y axis (c - d), reference set
 RIGID_FDPS = {
@@ -82,7 +82,33 @@ def _pocket_tris(tpl, hidden):
     return tpl.skin.tris[hidden[tpl.skin.tris].all(axis=1)]
 
 
-def keep_inside(tpl, bone_template, bone_mapped, skin_adapted, clearance=0.0015):  # noqa: C901
+def _within(points, verts, tris, reach):
+    """Mask (k,): the points nearer than `reach` to the mesh (verts, tris), by the exact closest point
+    on each triangle (spatial.closest_on_triangles, as MeshQuery(backend="numpy") finds it), tried
+    only on the triangles that could be that near: those whose bounding ball (about the centroid)
+    grown by `reach` holds the point. A point with a corner nearer than `reach` needs no test."""
+    from scipy.spatial import cKDTree
+
+    from .spatial import closest_on_triangles
+
+    points = np.asarray(points, dtype=np.float64)
+    near = cKDTree(verts[np.unique(tris)]).query(points)[0] < reach * (1 - 1e-9)
+    todo = np.flatnonzero(~near)
+    if not len(todo) or not len(tris):
+        return near
+    corners = verts[tris]
+    centroid = corners.mean(axis=1)
+    ball = np.linalg.norm(corners - centroid[:, None], axis=2).max(axis=1)
+    lists = cKDTree(points[todo]).query_ball_point(centroid, ball + reach * (1 + 1e-9), return_sorted=False)
+    count = np.fromiter((len(x) for x in lists), dtype=np.int64, count=len(lists))
+    face = np.repeat(np.arange(len(tris)), count)
+    pid = todo[np.fromiter((i for x in lists for i in x), dtype=np.int64, count=int(count.sum()))]
+    q, _ = closest_on_triangles(points[pid], corners[face, 0], corners[face, 1], corners[face, 2])
+    near[pid[np.linalg.norm(q - points[pid], axis=1) < reach]] = True
+    return near
+
+
+def keep_inside(tpl, bone_template, bone_mapped, skin_adapted, clearance=0.0015, skin_inside=None):  # noqa: C901
     """Mapped bone points (n,3), moved where needed to at least `clearance` under the adapted skin.
 
     Each bone point keeps, from the template, its nearest point on the visible skin (face +
@@ -90,7 +116,8 @@ def keep_inside(tpl, bone_template, bone_mapped, skin_adapted, clearance=0.0015)
     there is less than `clearance` above the mapped point (the scan is thinner than the template's
     tissue), the point moves to `clearance` under it along the skin's normal. Any point by a
     pocket of the skin (eye socket, mouth bag) that ends in it goes out through the pocket's lining
-    (the mandible's centre, the old way out, lies in the mouth). Template frame, m.
+    (the mandible's centre, the old way out, lies in the mouth). Template frame, m. skin_inside:
+    the adapted skin's FastWinding, if the caller has one (transfer builds it once).
     """
     from .geometry import face_normals
     from .spatial import MeshQuery, barycentric
@@ -113,7 +140,9 @@ def keep_inside(tpl, bone_template, bone_mapped, skin_adapted, clearance=0.0015)
 
     near_pocket = np.flatnonzero(cKDTree(skin_adapted[hidden]).query(out, distance_upper_bound=POCKET_REACH)[0] < np.inf)
     if len(near_pocket):
-        w = winding_numbers(out[near_pocket], skin_adapted, tpl.skin.tris)
+        if skin_inside is None:
+            skin_inside = FastWinding(skin_adapted, tpl.skin.tris)
+        w = skin_inside(out[near_pocket])
         still = near_pocket[w < 0.5]
         if len(still):                 # out through the pocket's lining, `clearance` into the tissue
             pocket_t = _pocket_tris(tpl, hidden)
@@ -122,7 +151,7 @@ def keep_inside(tpl, bone_template, bone_mapped, skin_adapted, clearance=0.0015)
             # behind a thin lip the tissue may be thinner than the clearance: a shorter step then
             for share in (1.0, 0.5, 0.25):
                 out[still] = lining + share * inward
-                outside = winding_numbers(out[still], skin_adapted, tpl.skin.tris) < 0.5
+                outside = skin_inside(out[still]) < 0.5
                 still, lining, inward = still[outside], lining[outside], inward[outside]
                 if not len(still):
                     break
@@ -131,14 +160,15 @@ def keep_inside(tpl, bone_template, bone_mapped, skin_adapted, clearance=0.0015)
             lo, hi = np.zeros(len(still)), np.ones(len(still))
             for _ in range(16):
                 mid = 0.5 * (lo + hi)
-                ok = winding_numbers(out[still] + mid[:, None] * (centre - out[still]), skin_adapted, tpl.skin.tris) > 0.5
+                ok = skin_inside(out[still] + mid[:, None] * (centre - out[still])) > 0.5
                 hi, lo = np.where(ok, mid, hi), np.where(ok, lo, mid)
             step = centre - out[still]
             out[still] += hi[:, None] * step + clearance[still, None] * step / np.linalg.norm(step, axis=1, keepdims=True)
     return out
 
 
-def clear_visible_skin(tpl, skin, cranium, mandible, limit=0.48, radius=0.008, step=0.001, rounds=20):
+def clear_visible_skin(tpl, skin, cranium, mandible, limit=0.48, radius=0.008, step=0.001, rounds=20,
+                       skin_inside=None, bone_inside=None):
     """Cranium and mandible (template frame, m) pressed inward until no visible skin vertex is inside.
 
     keep_inside puts every bone point under the skin; this is the converse, for skin points that a
@@ -147,7 +177,8 @@ def clear_visible_skin(tpl, skin, cranium, mandible, limit=0.48, radius=0.008, s
     `radius` of it steps `step` deeper (fading with distance), each bone vertex along the inward
     normal of the skin vertex the template offset it from. A step that would take a bone point
     into a pocket of the skin (the eye socket behind the lids) slides along the pocket's lining
-    instead, or is not taken, so the bone stays inside the skin.
+    instead, or is not taken, so the bone stays inside the skin. skin_inside, bone_inside: the
+    skin's and the skull's FastWinding if the caller has them (the skull's is refit as it moves).
     """
     from scipy.spatial import cKDTree
 
@@ -162,7 +193,11 @@ def clear_visible_skin(tpl, skin, cranium, mandible, limit=0.48, radius=0.008, s
     normals = vertex_normals(skin, tpl.skin.tris)
     # each bone vertex deepens along the skin normal of the skin vertex it was offset from
     inward = -normals[np.r_[tpl.bone_skin_index["cranium"], tpl.bone_skin_index["mandible"]]]
-    near = visible[MeshQuery(bone, tris, backend="numpy").closest_points(skin[visible])[2] < 0.002]
+    near = visible[_within(skin[visible], bone, tris, 0.002)]
+    if skin_inside is None:
+        skin_inside = FastWinding(skin, tpl.skin.tris)
+    if bone_inside is None:
+        bone_inside = FastWinding(bone, tris)
     check = near
     by_pocket = cKDTree(skin[hidden]).query(bone, distance_upper_bound=POCKET_REACH)[0] < np.inf
     pocket_t = _pocket_tris(tpl, hidden)
@@ -170,7 +205,7 @@ def clear_visible_skin(tpl, skin, cranium, mandible, limit=0.48, radius=0.008, s
     pocket_n = face_normals(skin, pocket_t)
     frozen = np.zeros(len(bone), bool)
     for _ in range(rounds):
-        w = winding_numbers(skin[check], bone, tris)
+        w = bone_inside.refit(bone)(skin[check])
         bad = check[w > limit]
         if not len(bad):
             if len(check) == len(near):
@@ -185,34 +220,37 @@ def clear_visible_skin(tpl, skin, cranium, mandible, limit=0.48, radius=0.008, s
         # a bone point by a pocket (the orbit behind the lids) stops before it leaves the skin
         watch = np.flatnonzero(by_pocket & push.any(axis=1))
         if len(watch):
-            out = watch[winding_numbers(moved[watch], skin, tpl.skin.tris) < 0.5]
+            out = watch[skin_inside(moved[watch]) < 0.5]
             if len(out):       # slide along the pocket's lining instead of into the pocket
                 face = pocket_q.closest_points(moved[out])[1]
                 n_out = pocket_n[face]
                 p = push[out]
                 p -= np.maximum(np.einsum("ij,ij->i", p, n_out), 0.0)[:, None] * n_out
                 moved[out] = bone[out] + p
-                still = out[winding_numbers(moved[out], skin, tpl.skin.tris) < 0.5]
+                still = out[skin_inside(moved[out]) < 0.5]
                 moved[still], frozen[still] = bone[still], True
         bone = moved
         check = near[cKDTree(skin[bad]).query(skin[near], distance_upper_bound=radius)[0] < np.inf]
     return bone[:n_cr], bone[n_cr:]
 
 
-def _unrelax_under_skin(tpl, parts, pressed, radius=0.008):
+def _unrelax_under_skin(tpl, parts, pressed, radius=0.008, skin_inside=None, bone_inside=None):
     """Where visible skin still lies inside the relaxed skull (a lid at the orbit's opening), the
     bone within `radius` of it takes back its pressed, unrelaxed place and is cleared again."""
     n_cr = len(parts["cranium"])
     bone = np.vstack([parts["cranium"], parts["mandible"]])
     visible = np.flatnonzero(~_hidden(tpl))
-    bad = visible[winding_numbers(parts["skin"][visible], bone, tpl.skull_tris) > 0.5]
+    if bone_inside is None:
+        bone_inside = FastWinding(bone, tpl.skull_tris)
+    bad = visible[bone_inside.refit(bone)(parts["skin"][visible]) > 0.5]
     if not len(bad):
         return parts["cranium"], parts["mandible"]
     from scipy.spatial import cKDTree
 
     back = cKDTree(parts["skin"][bad]).query(bone, distance_upper_bound=radius)[0] < np.inf
     bone[back] = np.vstack([pressed["cranium"], pressed["mandible"]])[back]
-    return clear_visible_skin(tpl, parts["skin"], bone[:n_cr], bone[n_cr:])
+    return clear_visible_skin(tpl, parts["skin"], bone[:n_cr], bone[n_cr:],
+                              skin_inside=skin_inside, bone_inside=bone_inside)
 
 
 def surface_point(verts, tris, ref):
@@ -292,17 +330,23 @@ def transfer(tpl, result):
     # the skull through the final map (all last-level FPs)
     mapped = {name: result.map_points(tpl.parts[name].verts) for name in ("cranium", "mandible")}
     parts["skin"], offsets = seat_orbits(tpl, result.scan, parts, rigid, mapped)
+    # the inside tests of the rest: the adapted skin's built once, the skull's refit as it moves
+    skin_inside = FastWinding(parts["skin"], tris["skin"])
     pressed = {}
     for name in mapped:
-        pressed[name] = keep_inside(tpl, tpl.parts[name].verts, mapped[name] + offsets[name], parts["skin"])
+        pressed[name] = keep_inside(tpl, tpl.parts[name].verts, mapped[name] + offsets[name], parts["skin"],
+                                    skin_inside=skin_inside)
         # each point goes under its own skin point: neighbours pressed different ways fold the
         # bone (orbit floors, cheeks); relax the folds, giving back as much of the press as can be
         relaxed = geometry.unfold(tpl.parts[name].verts, pressed[name], tris[name])[0]
-        lifted = winding_numbers(relaxed, parts["skin"], tpl.skin.tris) < 0.5    # out of the skin again
+        lifted = skin_inside(relaxed) < 0.5    # out of the skin again
         relaxed[lifted] = pressed[name][lifted]
         parts[name] = relaxed
-    parts["cranium"], parts["mandible"] = clear_visible_skin(tpl, parts["skin"], parts["cranium"], parts["mandible"])
-    parts["cranium"], parts["mandible"] = _unrelax_under_skin(tpl, parts, pressed)
+    bone_inside = FastWinding(np.vstack([parts["cranium"], parts["mandible"]]), tpl.skull_tris)
+    parts["cranium"], parts["mandible"] = clear_visible_skin(tpl, parts["skin"], parts["cranium"], parts["mandible"],
+                                                             skin_inside=skin_inside, bone_inside=bone_inside)
+    parts["cranium"], parts["mandible"] = _unrelax_under_skin(tpl, parts, pressed, skin_inside=skin_inside,
+                                                              bone_inside=bone_inside)
     for name, ref in tpl.meta["fdps"].items():
         if ref["part"] != "skin":
             fdps[name] = surface_point(parts[ref["part"]], tris[ref["part"]], ref)
