@@ -197,7 +197,7 @@ def clear_visible_skin(tpl, skin, cranium, mandible, limit=0.48, radius=0.008, s
     if skin_inside is None:
         skin_inside = FastWinding(skin, tpl.skin.tris)
     if bone_inside is None:
-        bone_inside = FastWinding(bone, tris)
+        bone_inside = FastWinding(bone, tris, slack=step)
     check = near
     by_pocket = cKDTree(skin[hidden]).query(bone, distance_upper_bound=POCKET_REACH)[0] < np.inf
     pocket_t = _pocket_tris(tpl, hidden)
@@ -241,7 +241,7 @@ def _unrelax_under_skin(tpl, parts, pressed, radius=0.008, skin_inside=None, bon
     bone = np.vstack([parts["cranium"], parts["mandible"]])
     visible = np.flatnonzero(~_hidden(tpl))
     if bone_inside is None:
-        bone_inside = FastWinding(bone, tpl.skull_tris)
+        bone_inside = FastWinding(bone, tpl.skull_tris, slack=0.001)
     bad = visible[bone_inside.refit(bone)(parts["skin"][visible]) > 0.5]
     if not len(bad):
         return parts["cranium"], parts["mandible"]
@@ -342,7 +342,8 @@ def transfer(tpl, result):
         lifted = skin_inside(relaxed) < 0.5    # out of the skin again
         relaxed[lifted] = pressed[name][lifted]
         parts[name] = relaxed
-    bone_inside = FastWinding(np.vstack([parts["cranium"], parts["mandible"]]), tpl.skull_tris)
+    # the skull's: clear_visible_skin moves it a step (1 mm) at a time; its grid keeps for a step
+    bone_inside = FastWinding(np.vstack([parts["cranium"], parts["mandible"]]), tpl.skull_tris, slack=0.001)
     parts["cranium"], parts["mandible"] = clear_visible_skin(tpl, parts["skin"], parts["cranium"], parts["mandible"],
                                                              skin_inside=skin_inside, bone_inside=bone_inside)
     parts["cranium"], parts["mandible"] = _unrelax_under_skin(tpl, parts, pressed, skin_inside=skin_inside,
