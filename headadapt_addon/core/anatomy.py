@@ -108,6 +108,35 @@ def _within(points, verts, tris, reach):
     return near
 
 
+_ANCHORS = {}        # template-only closest points of keep_inside: {digest of the inputs: (face, bary, depth)}
+
+
+def _skin_anchors(skin_verts, faces, bone_template):
+    """(face, barycentric, distance) of the closest point of each template bone point on the
+    template's visible skin (verts, faces): depends on the template alone, so computed once per
+    template and bone in a process (keyed by the arrays' bytes) and then shared by every transfer."""
+    import hashlib
+
+    from .spatial import MeshQuery, barycentric
+
+    digest = hashlib.sha256()
+    for a in (skin_verts, faces, bone_template):
+        a = np.ascontiguousarray(a)
+        digest.update(f"{a.dtype.str}{a.shape}".encode())
+        digest.update(a.tobytes())
+    key = digest.hexdigest()
+    if key not in _ANCHORS:
+        near, face, depth = MeshQuery(skin_verts, faces).closest_points(bone_template)
+        v0 = skin_verts[faces[face]]
+        found = (face, barycentric(near, v0[:, 0], v0[:, 1], v0[:, 2]), depth)
+        for a in found:
+            a.setflags(write=False)
+        if len(_ANCHORS) >= 8:
+            _ANCHORS.clear()
+        _ANCHORS[key] = found
+    return _ANCHORS[key]
+
+
 def keep_inside(tpl, bone_template, bone_mapped, skin_adapted, clearance=0.0015, skin_inside=None):  # noqa: C901
     """Mapped bone points (n,3), moved where needed to at least `clearance` under the adapted skin.
 
@@ -120,14 +149,12 @@ def keep_inside(tpl, bone_template, bone_mapped, skin_adapted, clearance=0.0015,
     the adapted skin's FastWinding, if the caller has one (transfer builds it once).
     """
     from .geometry import face_normals
-    from .spatial import MeshQuery, barycentric
+    from .spatial import MeshQuery
 
     hidden = _hidden(tpl)
     faces = tpl.skin.tris[~hidden[tpl.skin.tris].any(axis=1)]
-    near, face, depth0 = MeshQuery(tpl.skin.verts, faces).closest_points(bone_template)
+    face, bary, depth0 = _skin_anchors(tpl.skin.verts, faces, bone_template)
     clearance = np.minimum(clearance, 0.8 * depth0)      # never deeper than the template itself had it
-    v0 = tpl.skin.verts[faces[face]]
-    bary = barycentric(near, v0[:, 0], v0[:, 1], v0[:, 2])
     skin_pt = np.einsum("ij,ijk->ik", bary, skin_adapted[faces[face]])
     normal = face_normals(skin_adapted, faces[face])
     out = np.asarray(bone_mapped, dtype=np.float64).copy()

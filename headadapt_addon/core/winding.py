@@ -156,6 +156,7 @@ class FastWinding:
             return
         rotated = self.verts @ ROTATION.T
         self.corners = rotated[self.sorted].reshape(-1, 9)            # (m,9): x0 y0 z0 x1 ...
+        self._reach = float(np.abs(self.corners).max(initial=0.0))    # the largest coordinate
         if self._grid_verts is None or np.einsum("ij,ij->i", rotated - self._grid_verts,
                                                  rotated - self._grid_verts).max(initial=0.0) > self._slack ** 2:
             self._build_grid(rotated)
@@ -220,7 +221,7 @@ class FastWinding:
         e02 = 4 * _EPS * (np.abs(a02) + np.abs(b02))
         # the turn itself moves each coordinate by up to `shift` (the same for every triangle: the
         # count stays consistent, but a point closer than that to the surface may change sides)
-        shift = 8 * _EPS * max(float(np.abs(self.corners).max(initial=0.0)), float(np.abs(q).max(initial=0.0)))
+        shift = 8 * _EPS * max(self._reach, float(np.abs(q).max(initial=0.0)))
         ax0, ay0, ax1, ay1, ax2, ay2 = (np.abs(x) for x in (x0, y0, x1, y1, x2, y2))
         m01, m12, m02 = e01 + shift * (ax0 + ay0 + ax1 + ay1), e12 + shift * (ax1 + ay1 + ax2 + ay2), \
             e02 + shift * (ax0 + ay0 + ax2 + ay2)

@@ -8,8 +8,10 @@ two busts of ../shared/scans, or $HEADADAPT_SCANS). On each adapted head anatomy
 
   old   the transfer as it was before core/winding.py: every inside test the brute-force sum
         over all triangles (inside.winding_numbers), the skin near the bone by MeshQuery's
-        closest point for every visible skin vertex (the same code with those two put back)
-  new   anatomy.transfer as it is: FastWinding (exact, built once per transfer), _within
+        closest point for every visible skin vertex, the template's skin anchors of the bone
+        found anew (the same code with those three put back)
+  new   anatomy.transfer as it is: FastWinding (exact, built once per transfer), _within, the
+        anchors found once per process; "cold" is the first transfer of a process, which finds them
 
 Printed per head: seconds old and new, their ratio, and the largest difference of any vertex of
 any part between the two results (0: bit-identical). Then where the time goes, per stage of the
@@ -33,7 +35,7 @@ from headadapt_addon.core.spatial import MeshQuery  # noqa: E402
 from headadapt_addon.core.template import load_template  # noqa: E402
 
 STAGES = (  # (label, module, function name): timed exclusive of each other
-    ("the rest (maps, FDPs, muscles, checks)", None, None),
+    ("rest: maps, FDPs, muscles, checks", None, None),
     ("seat the eyes in the orbits", anatomy, "seat_orbits"),
     ("keep the bone inside the skin", anatomy, "keep_inside"),
     ("relax the pressed bone's folds", geometry, "unfold"),
@@ -94,7 +96,7 @@ class Clock:
         return timed
 
 
-def timed_transfer(tpl, result, old):
+def timed_transfer(tpl, result, old, cold=False):
     """(Anatomy, total seconds, {stage: exclusive seconds}, seconds in inside tests)."""
     clock = Clock()
     inside = {"s": 0.0}
@@ -117,6 +119,8 @@ def timed_transfer(tpl, result, old):
         stack.enter_context(patched(anatomy, FastWinding=Counted))
         if old:
             stack.enter_context(patched(anatomy, _within=old_within))
+        if old or cold:
+            stack.enter_context(patched(anatomy, _ANCHORS={}))
         for label, module, name in STAGES[1:]:
             stack.enter_context(patched(module, **{name: clock.wrap(label, getattr(module, name))}))
         t0 = time.perf_counter()
@@ -158,27 +162,29 @@ def main(argv=None):
     for name, result in heads(tpl, args.real):
         best = {}
         for _ in range(args.reps):
-            for old in (True, False):
-                run = timed_transfer(tpl, result, old)
-                if old not in best or run[1] < best[old][1]:
-                    best[old] = run
-        diff = {p: float(np.abs(best[True][0].parts[p] - best[False][0].parts[p]).max()) for p in best[True][0].parts}
+            for key in ("old", "cold", "new"):
+                run = timed_transfer(tpl, result, key == "old", key == "cold")
+                if key not in best or run[1] < best[key][1]:
+                    best[key] = run
+        diff = {p: float(np.abs(best["old"][0].parts[p] - best["new"][0].parts[p]).max()) for p in best["old"][0].parts}
         rows.append((name, best, diff))
     print(f"anatomy transfer, fastest of {args.reps} runs each way in one process "
           "(old: brute-force inside tests, as before core/winding.py)")
-    print(f"{'head':14s} {'old s':>7s} {'new s':>7s} {'ratio':>7s}  largest vertex difference between the results")
+    print(f"{'head':14s} {'old s':>7s} {'new s':>7s} {'ratio':>7s} {'cold s':>7s} {'ratio':>7s}  "
+          "largest vertex difference between old and new")
     for name, best, diff in rows:
         worst = max(diff, key=diff.get)
-        print(f"{name:14s} {best[True][1]:7.3f} {best[False][1]:7.3f} {best[True][1] / best[False][1]:6.1f}x  "
+        old, new, cold = (best[k][1] for k in ("old", "new", "cold"))
+        print(f"{name:14s} {old:7.3f} {new:7.3f} {old / new:6.1f}x {cold:7.3f} {old / cold:6.1f}x  "
               f"{diff[worst]:.1e} m ({worst}; {'all parts equal' if diff[worst] == 0 else 'per part: ' + str(diff)})")
     for name, best, _ in rows:
         print()
         print(f"where the time goes, {name} (exclusive seconds of the fastest run):")
-        print(f"  {'stage':36s} {'old':>7s} {'new':>7s}")
+        print(f"  {'stage':36s} {'old':>7s} {'new':>7s} {'cold':>7s}")
         for label, _, _ in STAGES:
-            print(f"  {label:36s} {best[True][2].get(label, 0.0):7.3f} {best[False][2].get(label, 0.0):7.3f}")
-        print(f"  {'total':36s} {best[True][1]:7.3f} {best[False][1]:7.3f}")
-        print(f"  {'of it in inside tests (all stages)':36s} {best[True][3]:7.3f} {best[False][3]:7.3f}")
+            print(f"  {label:36s} " + " ".join(f"{best[k][2].get(label, 0.0):7.3f}" for k in ("old", "new", "cold")))
+        print(f"  {'total':36s} " + " ".join(f"{best[k][1]:7.3f}" for k in ("old", "new", "cold")))
+        print(f"  {'of it in inside tests (all stages)':36s} " + " ".join(f"{best[k][3]:7.3f}" for k in ("old", "new", "cold")))
 
 
 if __name__ == "__main__":
