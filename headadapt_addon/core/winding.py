@@ -176,11 +176,16 @@ class FastWinding:
         lo, hi = lo - self._slack, hi + self._slack
         self.box = np.hstack([lo, hi])
         origin = lo.min(axis=0) if len(lo) else np.zeros(2)
-        i0 = np.floor((lo - origin) / cell).astype(np.int64)
-        i1 = np.floor((hi - origin) / cell).astype(np.int64)
-        shape = i1.max(axis=0) + 1 if len(lo) else np.ones(2, np.int64)
-        width = i1 - i0 + 1
-        counts = width[:, 0] * width[:, 1]
+        while True:
+            i0 = np.floor((lo - origin) / cell).astype(np.int64)
+            i1 = np.floor((hi - origin) / cell).astype(np.int64)
+            shape = i1.max(axis=0) + 1 if len(lo) else np.ones(2, np.int64)
+            width = i1 - i0 + 1
+            counts = width[:, 0] * width[:, 1]
+            # large triangles (caps over wide holes) in many cells: coarser cells, a shorter list
+            if counts.sum() <= 32 * self.n_closed + 4096:
+                break
+            cell *= 1.5
         tri = np.repeat(np.arange(self.n_closed), counts)
         local = np.arange(len(tri)) - np.repeat(np.cumsum(counts) - counts, counts)
         key = (i0[tri, 0] + local % width[tri, 0]) * shape[1] + i0[tri, 1] + local // width[tri, 0]
@@ -190,11 +195,15 @@ class FastWinding:
         self.cell_tris = tri[order]
         self.start = np.searchsorted(key[order], np.arange(shape[0] * shape[1] + 1))
 
-    def crossings(self, points):
+    def crossings(self, points, chunk=65536):
         """(W (k,) int, unsure (k,) bool): the winding number of mesh + caps at each point, the signed
         count of triangles a ray crosses; unsure where rounding could change the count."""
+        points = np.atleast_2d(np.asarray(points, dtype=np.float64))
+        if len(points) > chunk:
+            parts = [self.crossings(points[i:i + chunk], chunk) for i in range(0, len(points), chunk)]
+            return np.concatenate([w for w, _ in parts]), np.concatenate([u for _, u in parts])
         self._prepare()
-        q = np.atleast_2d(np.asarray(points, dtype=np.float64)) @ ROTATION.T
+        q = points @ ROTATION.T
         n = len(q)
         unsure = ~np.isfinite(q).all(axis=1)
         cx = np.floor((q[:, 0] - self.origin[0]) / self.cell)
