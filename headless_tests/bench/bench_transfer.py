@@ -13,8 +13,9 @@ two busts of ../shared/scans, or $HEADADAPT_SCANS). On each adapted head anatomy
   new   anatomy.transfer as it is: FastWinding (exact, built once per transfer), _within, the
         anchors found once per process; "cold" is the first transfer of a process, which finds them
 
-Printed per head: seconds old and new, their ratio, and the largest difference of any vertex of
-any part between the two results (0: bit-identical). Then where the time goes, per stage of the
+Printed per head: seconds old and new (wall clock; and the process's CPU seconds, less disturbed
+by other work on a shared machine), their ratio, and the largest difference of any vertex of any
+part between the two results (0: bit-identical). Then where the time goes, per stage of the
 transfer (exclusive seconds of the fastest run) and in all inside tests together.
 """
 import argparse
@@ -97,7 +98,7 @@ class Clock:
 
 
 def timed_transfer(tpl, result, old, cold=False):
-    """(Anatomy, total seconds, {stage: exclusive seconds}, seconds in inside tests)."""
+    """(Anatomy, total seconds, {stage: exclusive seconds}, seconds in inside tests, CPU seconds)."""
     clock = Clock()
     inside = {"s": 0.0}
     base = BruteWinding if old else anatomy.FastWinding
@@ -123,10 +124,10 @@ def timed_transfer(tpl, result, old, cold=False):
             stack.enter_context(patched(anatomy, _ANCHORS={}))
         for label, module, name in STAGES[1:]:
             stack.enter_context(patched(module, **{name: clock.wrap(label, getattr(module, name))}))
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         ana = clock.wrap(STAGES[0][0], anatomy.transfer)(tpl, result)
-        total = time.perf_counter() - t0
-    return ana, total, clock.seconds, inside["s"]
+        total, cpu = time.perf_counter() - t0, time.process_time() - c0
+    return ana, total, clock.seconds, inside["s"], cpu
 
 
 def heads(tpl, real):
@@ -171,11 +172,12 @@ def main(argv=None):
     print(f"anatomy transfer, fastest of {args.reps} runs each way in one process "
           "(old: brute-force inside tests, as before core/winding.py)")
     print(f"{'head':14s} {'old s':>7s} {'new s':>7s} {'ratio':>7s} {'cold s':>7s} {'ratio':>7s}  "
-          "largest vertex difference between old and new")
+          f"{'CPU s old':>9s} {'new':>6s}  largest vertex difference between old and new")
     for name, best, diff in rows:
         worst = max(diff, key=diff.get)
         old, new, cold = (best[k][1] for k in ("old", "new", "cold"))
         print(f"{name:14s} {old:7.3f} {new:7.3f} {old / new:6.1f}x {cold:7.3f} {old / cold:6.1f}x  "
+              f"{best['old'][4]:9.3f} {best['new'][4]:6.3f}  "
               f"{diff[worst]:.1e} m ({worst}; {'all parts equal' if diff[worst] == 0 else 'per part: ' + str(diff)})")
     for name, best, _ in rows:
         print()
