@@ -5,13 +5,15 @@ from __future__ import annotations
 import numpy as np
 
 from .. import mpeg4
+from ..adapt.options import AdaptResult
 from ..mesh import geometry, winding
+from ..template import Template
 from .bone import clear_visible_skin, keep_inside, unrelax_under_skin
 from .model import Anatomy
 from .rigid import RIGID_FDPS, rigid_from_fdps, seat_orbits, surface_point
 
 
-def transfer(tpl, result):
+def transfer(tpl: Template, result: AdaptResult) -> Anatomy:
     """Carry the template's anatomy onto the adapted head of an AdaptResult (template frame, m)."""
     parts = {"skin": result.verts}
     tris = {name: part.tris for name, part in tpl.parts.items()}
