@@ -96,10 +96,11 @@ NOT_EXPRESSED = ("dilate_l_pupil", "dilate_r_pupil", "tongue_roll", "raise_l_ear
 # The six expressions (FAP 2) at full intensity: fitted once on the template to their artist
 # references (ARTIST_REFERENCE, below) by bounded least squares over FACS-plausible controls (joy,
 # fear, disgust, surprise) or all of them (sadness, anger: their references need the chin and lip
-# pushes), then scaled so the baked key has the reference's magnitude; lids within +-1. Joy's
-# zygomaticus is held at 2 (at 2.9 a lip-corner triangle of adapted seed 3 folds).
+# pushes), then scaled so the baked key has the reference's magnitude; lids within +-1. Joy is
+# hand-held below its fit (zygomaticus major 2.9): a strong zygomaticus pull folds a lip-corner
+# triangle of adapted seed 3 and breaks the mirror symmetry by 0.8 mm (the lip corners' contact).
 EXPRESSION_RECIPES = {
-    "joy": _both({"zygomaticus_major_l": 2.0, "orbicularis_oculi_l": 1.83, "lower_lid_l": 1.0}),
+    "joy": _both({"zygomaticus_major_l": 1.2, "zygomaticus_minor_l": 0.8, "orbicularis_oculi_l": 1.83, "lower_lid_l": 1.0}),
     "sadness": _both({"frontalis_inner_l": 0.86, "corrugator_l": 0.33, "levator_labii_superioris_l": 0.04, "zygomaticus_minor_l": 0.09, "risorius_l": 0.35, "depressor_anguli_oris_l": 0.61, "mentalis_l": 0.83, "nasalis_l": 0.32, "cheek_puff_l": 0.27}) | {"lip_push_upper": 0.1, "lip_push_lower": 0.71, "jaw_open": 0.08, "jaw_thrust": 0.22},
     "anger": _both({"corrugator_l": 2.54, "zygomaticus_major_l": 0.39, "mentalis_l": 0.69, "buccinator_l": 0.06, "orbicularis_oculi_l": 0.39, "cheek_puff_l": 0.16, "lower_lid_l": 0.89, "upper_lid_l": 0.24}) | {"lip_push_upper": 0.08, "lip_push_lower": 0.47},
     "fear": _both({"frontalis_inner_l": 0.85, "frontalis_outer_l": 0.32, "corrugator_l": 0.05, "risorius_l": 0.52, "upper_lid_l": -0.4, "depressor_labii_inferioris_l": 0.24, "mentalis_l": 0.97}) | {"jaw_open": 0.3},
