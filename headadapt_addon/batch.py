@@ -220,6 +220,18 @@ def run_adapt(scan_path, landmarks_path, out_dir, levels=None, calibration="auto
     return report
 
 
+def spatial_backend():
+    """The batch's spatial backend, said in the log: Blender's BVH (the figures in the README) where
+    Blender's mathutils loads (in Blender, or beside the bpy module), else the exact numpy one (same
+    answers up to ties; a Python without Blender, or a worker whose memory limit stops bpy loading)."""
+    from .core.mesh.spatial import bvh_class
+
+    try:
+        return "bvh" if bvh_class() is not None else "numpy"
+    except (MemoryError, OSError):
+        return "numpy"
+
+
 def _adapt_and_write(record, verts, tris, points, markers, outputs, levels, calibration, keep_flagged, t0, log,
                      warn):
     from .core import meshio
@@ -229,7 +241,7 @@ def _adapt_and_write(record, verts, tris, points, markers, outputs, levels, cali
 
     tpl = load_template()
     options = AdaptOptions(max_levels=AdaptOptions.max_levels if levels is None else levels,
-                           calibration=calibration, drop_flagged=not keep_flagged)
+                           calibration=calibration, drop_flagged=not keep_flagged, backend=spatial_backend())
     log(f"headadapt: {pathlib.Path(record['scan']).name}: {len(verts):,} vertices, {len(tris):,} triangles, "
         f"{len(points)} FDPs")
     result = adapt(tpl, verts, tris, points, options, markers=markers,
