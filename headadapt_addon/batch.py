@@ -233,10 +233,23 @@ def as_blender_stores(verts):
 
 def adapt_options(levels=None, calibration="auto", keep_flagged=False):
     """The AdaptOptions of the batch's choices; the panels build theirs through this too
-    (ui.operators.adapt_options), so the same scan and clicks give the same result in both."""
+    (ui.operators.adapt_options), so the same scan and clicks give the same result in both
+    (the spatial backend: spatial_backend(), Blender's BVH in Blender)."""
     from .core.adapt import AdaptOptions
     return AdaptOptions(max_levels=AdaptOptions.max_levels if levels is None else levels,
-                        calibration=calibration, drop_flagged=not keep_flagged)
+                        calibration=calibration, drop_flagged=not keep_flagged, backend=spatial_backend())
+
+
+def spatial_backend():
+    """The batch's spatial backend, said in the log: Blender's BVH (the figures in the README) where
+    Blender's mathutils loads (in Blender, or beside the bpy module), else the exact numpy one (same
+    answers up to ties; a Python without Blender, or a worker whose memory limit stops bpy loading)."""
+    from .core.mesh.spatial import bvh_class
+
+    try:
+        return "bvh" if bvh_class() is not None else "numpy"
+    except (MemoryError, OSError):
+        return "numpy"
 
 
 def _adapt_and_write(record, verts, tris, points, markers, outputs, levels, calibration, keep_flagged, t0, log,

@@ -23,7 +23,7 @@ from .exceptions import FileFormatError, LandmarkError
 # ---------------------------------------------------------------------------------------------
 # atomic writes
 # ---------------------------------------------------------------------------------------------
-def write_atomic(path, data):
+def write_atomic(path: str | os.PathLike, data: str | bytes) -> None:
     """Write bytes or str to path atomically: a temporary file in the same folder, flushed to disk, then
     renamed over path, so path holds either its old content or all of data. FileFormatError names path
     when the folder cannot be made or written or the disk is full; no temporary file is left."""
@@ -54,7 +54,7 @@ def write_atomic(path, data):
 # ---------------------------------------------------------------------------------------------
 # meshes
 # ---------------------------------------------------------------------------------------------
-def read_mesh(path):
+def read_mesh(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
     """Read a scan (OBJ, PLY or STL) as (verts (n,3) float64, tris (k,3) int64), the file's frame and unit.
 
     The one read path of the batch job and the add-on (core/readers.py: plyfile and trimesh behind
@@ -62,7 +62,7 @@ def read_mesh(path):
     return readers.read_scan(path)
 
 
-def write_obj(path, verts, tris, header="HeadAdapt"):
+def write_obj(path: str | os.PathLike, verts: np.ndarray, tris: np.ndarray, header: str = "HeadAdapt") -> None:
     """Write a triangle mesh as OBJ (atomic); coordinates as given."""
     buf = io.StringIO()
     buf.write(f"# {header}\n# {len(verts)} vertices, {len(tris)} triangles\n")
@@ -74,12 +74,12 @@ def write_obj(path, verts, tris, header="HeadAdapt"):
 # ---------------------------------------------------------------------------------------------
 # landmarks
 # ---------------------------------------------------------------------------------------------
-def read_landmarks(path):
+def read_landmarks(path: str | os.PathLike) -> dict[str, np.ndarray]:
     """FDP landmarks {id: (3,) float} of a JSON or MeshLab .pp file (read_landmark_file's points)."""
     return read_landmark_file(path)[0]
 
 
-def read_landmark_file(path):
+def read_landmark_file(path: str | os.PathLike) -> tuple[dict[str, np.ndarray], dict]:
     """Read FDP landmarks ({id: (3,) float}, meta) from JSON {"points": {...}} or a MeshLab .pp file
     (file's frame).
 

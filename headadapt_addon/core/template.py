@@ -21,7 +21,7 @@ BONES = ("cranium", "mandible")
 HIDDEN_REGIONS = ("mouth_interior", "eye_socket_l", "eye_socket_r")
 
 
-def quads_to_tris(quads):
+def quads_to_tris(quads: np.ndarray) -> np.ndarray:
     """Split quads (k,4) into triangles (2k,3): quad q gives triangles 2q (0,1,2) and 2q+1 (0,2,3)."""
     quads = np.asarray(quads)
     return np.stack([quads[:, [0, 1, 2]], quads[:, [0, 2, 3]]], axis=1).reshape(-1, 3)
@@ -107,12 +107,12 @@ class Template:
 
 
 @functools.cache
-def bundled_template():
+def bundled_template() -> Template:
     """The template shipped in assets/template, loaded once per process (it is never changed)."""
     return load_template()
 
 
-def load_template(directory=None):
+def load_template(directory: str | pathlib.Path | None = None) -> Template:
     """Load the template from assets/template (or `directory`); FileFormatError names the file."""
     directory = pathlib.Path(directory or TEMPLATE_DIR)
     npz_path, json_path = directory / "template.npz", directory / "template.json"

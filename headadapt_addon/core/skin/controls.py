@@ -9,7 +9,13 @@ from ..tol import TINY
 
 LID_REACH = 1.7                       # the lid's turn fades to 0 at this many margin radii from the eye axis
 LOWER_LID_SHARE = 0.35                # the lower lid at 1 rises this share of the opening (as in a blink)
-LID_STIFFNESS = 5.0                   # lid skin on its tarsal plate
+LID_CORNER_POWER = 2.0                # the bump's ends flatten (a steep end folds the rim by the canthus)
+LID_FRONT = 0.6                       # the plate fades out over this many margin radii in front of the eye's centre
+LID_KINEMATIC = 0.2                   # lid skin turned at least this share is put where its plate takes it
+                                      # (the solve's springs shear the lid's thin rim and fold it)
+LID_EASE_STEPS, LID_EASE = 12, 0.9     # the lid's placement eases into the skin around it (rings, share)
+LID_STIFFNESS = 2.0                   # the whole plate on its turned place (a weak hold where the turn is
+                                      # small drags the skin by the canthi along and folds it)
 MUSCLE_CONE_DEG = 15.0               # Waters' angular fall-off: zero at this angle off the muscle axis
 MUSCLE_BAND = 0.15                    # radial fall-off: zero this fraction of the length from the insertion
 MUSCLE_MIN_REACH = 0.008              # short muscles still spread their pull this far (m)
@@ -36,24 +42,6 @@ def strength_of(name):
     base = name[:-2] if name.endswith(("_l", "_r")) else name
     base = base.replace("_upper", "").replace("_lower", "")
     return STRENGTH.get(base, 0.5)
-
-
-def _fissure_opening(along, phi, upper, lid_skin, mid, half, bins=12):
-    """Per vertex (n,): the angle (rad) between the lid margins in its column of the fissure
-    (`along` the corner line, metres), from the visible lid skin: the upper margin is the most
-    closed upper-lid vertex, the lower margin the most closed lower-lid vertex; 0 at the corners."""
-    edges = np.linspace(mid - half, mid + half, bins + 1)
-    col = np.digitize(along, edges) - 1
-    top, bottom = np.full(bins, -np.inf), np.full(bins, np.inf)
-    ok = np.ones(bins, bool)
-    for side, out, pick in ((upper, top, np.maximum), (~upper, bottom, np.minimum)):
-        m = (col >= 0) & (col < bins) & lid_skin & side
-        pick.at(out, col[m], phi[m])
-        ok &= np.bincount(col[m], minlength=bins) >= 3            # a sparse column has no margin
-    gap = bottom - top
-    centres = 0.5 * (edges[:-1] + edges[1:])
-    gap = np.interp(centres, centres[ok], np.maximum(gap[ok], 0.0))
-    return np.interp(along, np.r_[edges[0], centres, edges[-1]], np.r_[0.0, gap, 0.0])
 
 
 def _mirror_dofs(tpl, idx_l, n):
@@ -147,43 +135,75 @@ def pressure_controls(tpl, skin, normals, fdps, n):
 
 
 def lid_controls(tpl, skin, parts, fdps, n):
-    """Lid plates: {control: (dofs, anchor stiffness, eye centre, full close angle rad, weight, axis)}.
+    """Lid plates: {control: (dofs, anchor stiffness, eye centre, full close angle rad, weight, axis,
+    radius ratio)}.
 
     A lid turns about the axis through the eyeball's centre parallel to the line of its corners;
-    the turn fades from the margin (1) to the orbit's rim (0), and along the fissure it is the
-    local opening (the angle between the margins there) over the opening at the middle, so at 1 the
-    margins meet all along and the canthi stay.
+    the turn fades from the margin (1) to the orbit's rim (0) and behind the eye's centre, and along
+    the fissure it is a smooth bump, 1 at 3.1/3.3 and 0 at the canthi, so the canthi stay. The upper
+    margin also sinks from its own distance to the axis to the lower margin's (radius ratio |3.3| /
+    |3.1| across the axis) and slides along the axis by 3.3's offset from 3.1: on a scanned head the
+    upper lid often stands well in front of the lower (radii 20 and 13 mm), and a turn alone leaves
+    the eye open by that step. The right eye is built as the left of the mirrored head (an adapted
+    head is not symmetric), then mirrored back.
     """
+    mirror = tpl.skin_mirror
+    flip = np.array([-1.0, 1.0, 1.0])
+    right_fdps = {a: fdps[b] * flip for a, b in (("3.1", "3.2"), ("3.3", "3.4"), ("3.7", "3.12"), ("3.11", "3.8"))}
     out = {}
-    centre = parts["eye_l"].mean(axis=0)
+    for side in "lr":             # the right eye: the left's construction on the mirrored head
+        if side == "l":
+            side_skin, centre, side_fdps = skin, parts["eye_l"].mean(axis=0), fdps
+        else:
+            side_skin, centre, side_fdps = skin[mirror] * flip, parts["eye_r"].mean(axis=0) * flip, right_fdps
+        for which, (v, w, angle, axis, sink) in _lid_plates(tpl, side_skin, centre, side_fdps).items():
+            idx = np.concatenate([v + layer * n for layer in range(3)])
+            wk = np.tile(w, 3)
+            if side == "r":       # back to the right side: an axis is a pseudovector (so the slide turns)
+                idx, centre_r, axis, sink = _mirror_dofs(tpl, idx, n), centre * flip, axis * -flip, (sink[0], -sink[1])
+            out[f"{which}_lid_{side}"] = (idx, np.full(len(idx), LID_STIFFNESS), centre if side == "l" else centre_r,
+                                          angle, wk, axis, sink)
+    return out
+
+
+def _lid_plates(tpl, skin, centre, fdps):
+    """The left eye's lid plates of skin (n,3): {upper/lower: (vertices, weight, full angle, axis, sink)}."""
     outer, inner = fdps["3.7"], fdps["3.11"]
     axis = (outer - inner) / np.linalg.norm(outer - inner)
     axis = np.array([axis[0], 0.0, axis[2]]) / np.linalg.norm([axis[0], axis[2]])   # no forward tilt
     lid = tpl.region_mask("eyelid_l", "eye_socket_l")
     rel = skin - centre
     along = rel @ axis
-    flat = rel - np.outer(along, axis)                               # across the axis
-    radial = np.linalg.norm(flat, axis=1)                            # distance from the axis
+    radial = np.linalg.norm(rel - np.outer(along, axis), axis=1)    # distance from the axis
     r_margin = np.linalg.norm(fdps["3.1"] - centre)
     half = 0.5 * np.linalg.norm(outer - inner)
     mid = 0.5 * ((outer - centre) @ axis + (inner - centre) @ axis)
     r1, r3 = (fdps[k] - centre for k in ("3.1", "3.3"))
+    shift = float((r3 - r1) @ axis)                                  # 3.3 beside 3.1 along the fissure
     r1, r3 = r1 - (r1 @ axis) * axis, r3 - (r3 @ axis) * axis
-    turn = np.sign(np.cross(r1, r3) @ axis)
     full = abs(float(np.arctan2(np.cross(r1, r3) @ axis, r1 @ r3)))   # margin to margin, about the axis
     line_z = inner[2] + (along - (inner - centre) @ axis) / (2 * half) * (outer[2] - inner[2])
     upper = skin[:, 2] > line_z
-    # angle of each vertex from the upper margin's middle toward the lower's, about the axis
-    phi = turn * np.arctan2(np.cross(r1, flat) @ axis, flat @ r1)
-    opening = _fissure_opening(along, phi, upper, tpl.region_mask("eyelid_l"), mid, half) / full
+    # Along the fissure the turn is a smooth bump, 1 at 3.1 and 0 where the margins join (the
+    # canthi: the ends of the lid skin's edges from the upper side to the lower near the fissure),
+    # a function of `along` only so the lid's rim (two rows 0.5 mm apart) turns as one.
+    tris = tpl.skin.tris
+    e = np.concatenate([tris[:, [0, 1]], tris[:, [1, 2]], tris[:, [2, 0]]])
+    e = e[(upper[e[:, 0]] != upper[e[:, 1]]) & lid[e].any(axis=1) & (rel[e, 1] < 0).all(axis=1)
+          & (radial[e] < LID_REACH * r_margin).all(axis=1)]
+    joined = along[np.unique(e)]
+    lo = joined[joined < mid].max(initial=mid - half)
+    hi = joined[joined > mid].min(initial=mid + half)
+    t = (along - 0.5 * (lo + hi)) / (0.5 * (hi - lo))
+    t1 = ((fdps["3.1"] - centre) @ axis - 0.5 * (lo + hi)) / (0.5 * (hi - lo))
+    opening = (np.clip(1.0 - t ** 2, 0.0, 1.0) / max(1.0 - t1 ** 2, 0.5)) ** LID_CORNER_POWER
+    front = np.clip(-rel[:, 1] / (LID_FRONT * r_margin), 0, 1)      # the socket behind the eye stays
     w = (np.clip((LID_REACH * r_margin - radial) / ((LID_REACH - 1.0) * r_margin), 0, 1)
-         * np.clip(opening, 0, 1) * lid)
+         * np.clip(opening, 0, 1) * front * lid)
+    ratio = float(np.linalg.norm(r3) / max(np.linalg.norm(r1), TINY))
+    out = {}
     for which, mask in (("upper", (w > 0) & upper), ("lower", (w > 0) & ~upper)):
         v = np.flatnonzero(mask)
-        idx = np.concatenate([v + layer * n for layer in range(3)])
-        wk = np.tile(w[v], 3)
-        angle = full * (1.0 if which == "upper" else LOWER_LID_SHARE)
-        out[f"{which}_lid_l"] = (idx, LID_STIFFNESS * wk, centre, angle, wk, axis)
-        out[f"{which}_lid_r"] = (_mirror_dofs(tpl, idx, n), LID_STIFFNESS * wk, parts["eye_r"].mean(axis=0),
-                                 angle, wk, axis * [1.0, -1.0, -1.0])   # an axis is a pseudovector
+        out[which] = (v, w[v], full * (1.0 if which == "upper" else LOWER_LID_SHARE), axis,
+                      (ratio, shift) if which == "upper" else (1.0, 0.0))
     return out

@@ -93,18 +93,19 @@ FAP_HEAD = {"head_pitch": (0, "x"), "head_yaw": (2, "z"), "head_roll": (1, "y")}
 NOT_EXPRESSED = ("dilate_l_pupil", "dilate_r_pupil", "tongue_roll", "raise_l_ear", "raise_r_ear",
                  "pull_l_ear", "pull_r_ear")
 
-# The six expressions (FAP 2) at full intensity.
+# The six expressions (FAP 2) at full intensity: fitted once on the template to their artist
+# references (ARTIST_REFERENCE, below) by bounded least squares over FACS-plausible controls (joy,
+# fear, disgust, surprise) or all of them (sadness, anger: their references need the chin and lip
+# pushes), then scaled so the baked key has the reference's magnitude; lids within +-1. Joy is
+# hand-held below its fit (zygomaticus major 2.9): a strong zygomaticus pull folds a lip-corner
+# triangle of adapted seed 3 and breaks the mirror symmetry by 0.8 mm (the lip corners' contact).
 EXPRESSION_RECIPES = {
-    "joy": _both({"zygomaticus_major_l": 0.8, "orbicularis_oculi_l": 0.4, "risorius_l": 0.2}) | {"jaw_open": 0.08},
-    "sadness": _both({"frontalis_inner_l": 0.7, "corrugator_l": 0.4, "depressor_anguli_oris_l": 0.8,
-                      "upper_lid_l": 0.15}) | {"mentalis_l": 0.3, "mentalis_r": 0.3},
-    "anger": _both({"corrugator_l": 0.9, "levator_labii_superioris_l": 0.3, "upper_lid_l": -0.1,
-                    "depressor_anguli_oris_l": 0.2}) | {"orbicularis_oris": 0.6},
-    "fear": _both({"frontalis_inner_l": 0.8, "frontalis_outer_l": 0.4, "corrugator_l": 0.3, "risorius_l": 0.6,
-                   "upper_lid_l": -0.2}) | {"jaw_open": 0.2},
-    "disgust": _both({"levator_labii_superioris_l": 0.9, "nasalis_l": 0.4, "corrugator_l": 0.3,
-                      "depressor_anguli_oris_l": 0.3, "orbicularis_oculi_l": 0.3}),
-    "surprise": _both({"frontalis_inner_l": 0.9, "frontalis_outer_l": 0.9, "upper_lid_l": -0.25}) | {"jaw_open": 0.45},
+    "joy": _both({"zygomaticus_major_l": 1.2, "zygomaticus_minor_l": 0.8, "orbicularis_oculi_l": 1.83, "lower_lid_l": 1.0}),
+    "sadness": _both({"frontalis_inner_l": 0.86, "corrugator_l": 0.33, "levator_labii_superioris_l": 0.04, "zygomaticus_minor_l": 0.09, "risorius_l": 0.35, "depressor_anguli_oris_l": 0.61, "mentalis_l": 0.83, "nasalis_l": 0.32, "cheek_puff_l": 0.27}) | {"lip_push_upper": 0.1, "lip_push_lower": 0.71, "jaw_open": 0.08, "jaw_thrust": 0.22},
+    "anger": _both({"corrugator_l": 2.54, "zygomaticus_major_l": 0.39, "mentalis_l": 0.69, "buccinator_l": 0.06, "orbicularis_oculi_l": 0.39, "cheek_puff_l": 0.16, "lower_lid_l": 0.89, "upper_lid_l": 0.24}) | {"lip_push_upper": 0.08, "lip_push_lower": 0.47},
+    "fear": _both({"frontalis_inner_l": 0.85, "frontalis_outer_l": 0.32, "corrugator_l": 0.05, "risorius_l": 0.52, "upper_lid_l": -0.4, "depressor_labii_inferioris_l": 0.24, "mentalis_l": 0.97}) | {"jaw_open": 0.3},
+    "disgust": _both({"levator_labii_superioris_l": 0.6, "nasalis_l": 0.04, "corrugator_l": 2.52, "depressor_anguli_oris_l": 0.19, "orbicularis_oculi_l": 0.5, "lower_lid_l": 0.43}) | {"lip_push_upper": 0.45},
+    "surprise": _both({"frontalis_inner_l": 0.88, "frontalis_outer_l": 0.9, "upper_lid_l": -0.45, "mentalis_l": 0.88}) | {"jaw_open": 0.52},
 }
 
 # The fourteen visemes (FAP 1), by their names in mpeg4.VISEMES.
@@ -142,6 +143,74 @@ ARKIT_CONTROLS = {
                     "depressor_septi"),
     "cheekPuff": ("cheek_puff_l", "cheek_puff_r"),
 }
+
+
+# The eye closed (ARKit eyeBlink): both lids at 1, the upper margin meets the risen lower one.
+BLINK = {"eyeBlinkLeft": {"upper_lid_l": 1.0, "lower_lid_l": 1.0},
+         "eyeBlinkRight": {"upper_lid_r": 1.0, "lower_lid_r": 1.0}}
+
+
+def _units(**weights):
+    """Artist reference {face unit: weight}; a name ending in _ stands for its Left and Right units."""
+    out = {}
+    for name, w in weights.items():
+        if name.endswith("_"):
+            out[name[:-1] + "Left"] = out[name[:-1] + "Right"] = w
+        else:
+            out[name] = w
+    return out
+
+
+# The artist's reference of each shipped key: a blend of the CC0 faceunits01 ARKit face units
+# ({unit: weight}), after FACS (Ekman & Friesen) for the expressions and the usual ARKit viseme
+# charts. The benchmark (headless_tests/bench/bench_expressions.py) compares each baked key with
+# its reference in direction (cosine) and size (magnitude ratio). FAP keys without a matching unit
+# have none. Left FAPs are listed; the right ones mirror.
+ARTIST_REFERENCE = {
+    "joy": _units(mouthSmile_=1.0, cheekSquint_=0.6, eyeSquint_=0.4),
+    "sadness": _units(browInnerUp=1.0, mouthFrown_=1.0, mouthShrugLower=0.3, browDown_=0.2),
+    "anger": _units(browDown_=1.0, eyeSquint_=0.5, mouthPress_=0.6, noseSneer_=0.3),
+    "fear": _units(browInnerUp=1.0, browOuterUp_=0.4, eyeWide_=1.0, mouthStretch_=0.8, jawOpen=0.2),
+    "disgust": _units(noseSneer_=1.0, mouthUpperUp_=0.6, mouthFrown_=0.3, cheekSquint_=0.3, browDown_=0.3),
+    "surprise": _units(browInnerUp=1.0, browOuterUp_=1.0, eyeWide_=1.0, jawOpen=0.3),
+    "viseme_p_b_m": _units(mouthPress_=0.5, mouthRollLower=0.3, mouthRollUpper=0.3),
+    "viseme_f_v": _units(mouthRollLower=0.6, mouthUpperUp_=0.3, jawOpen=0.05),
+    "viseme_T_D": _units(jawOpen=0.15, mouthStretch_=0.1),
+    "viseme_t_d": _units(jawOpen=0.12, mouthStretch_=0.2),
+    "viseme_k_g": _units(jawOpen=0.2, mouthStretch_=0.15),
+    "viseme_tS_dZ_S": _units(mouthFunnel=0.6, mouthPucker=0.2, jawOpen=0.1),
+    "viseme_s_z": _units(jawOpen=0.05, mouthStretch_=0.4),
+    "viseme_n_l": _units(jawOpen=0.15, mouthStretch_=0.1),
+    "viseme_r": _units(mouthFunnel=0.3, mouthPucker=0.3, jawOpen=0.1),
+    "viseme_A": _units(jawOpen=0.5),
+    "viseme_e": _units(jawOpen=0.3, mouthStretch_=0.4),
+    "viseme_I": _units(jawOpen=0.15, mouthSmile_=0.3, mouthStretch_=0.4),
+    "viseme_Q": _units(mouthFunnel=0.7, jawOpen=0.3),
+    "viseme_U": _units(mouthPucker=0.8, mouthFunnel=0.2, jawOpen=0.1),
+    "open_jaw": _units(jawOpen=0.8),                       # open_jaw at 1 turns 22 deg, jawOpen about 27
+    "thrust_jaw": _units(jawForward=1.0),
+    "shift_jaw": _units(jawRight=1.0),
+    "raise_b_midlip": _units(mouthShrugLower=1.0),
+    "push_t_lip": _units(mouthShrugUpper=1.0),
+    "close_t_l_eyelid": _units(eyeBlinkLeft=1.0),
+    "stretch_l_cornerlip": _units(mouthStretchLeft=1.0),
+    "raise_l_cornerlip": _units(mouthSmileLeft=1.0),
+    "raise_l_o_eyebrow": _units(browOuterUpLeft=1.0),
+    "squeeze_l_eyebrow": _units(browDownLeft=1.0),
+    "lift_l_cheek": _units(cheekSquintLeft=1.0),
+    "stretch_l_nose": _units(noseSneerLeft=1.0),
+}
+for _name in [k for k in ARTIST_REFERENCE if _mirror_name(k) != k]:
+    _other = {u.replace("Left", "\0").replace("Right", "Left").replace("\0", "Right"): w
+              for u, w in ARTIST_REFERENCE[_name].items()}
+    ARTIST_REFERENCE[_mirror_name(_name)] = _other
+for _name in [k for k in ARTIST_REFERENCE if k.endswith(("_cornerlip",)) and not k.endswith("_o")]:
+    ARTIST_REFERENCE[_name + "_o"] = ARTIST_REFERENCE[_name]           # the outer lip FAP, same muscles
+
+
+def reference_units():
+    """Every face unit a reference names (sorted)."""
+    return sorted({u for ref in ARTIST_REFERENCE.values() for u in ref} | set(BLINK))
 
 
 def shape_key_recipes():

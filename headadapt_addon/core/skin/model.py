@@ -19,8 +19,10 @@ Controls, each with an activation (0 = rest, 1 = full):
 - `jaw_open` turns the mandible about the jaw pivot, `jaw_thrust` / `jaw_shift` slide it; the
   skin follows through its springs to the bone;
 - `upper_lid_l/r`, `lower_lid_l/r` turn the lids about the eyeball's centre (the tarsal plate
-  riding on the eye); at 1 the upper margin meets the lower all along the fissure, the lower
-  rises LOWER_LID_SHARE of the opening (the upper then stops on it);
+  riding on the eye); at 1 the upper margin meets the lower all along the fissure (it turns and,
+  near the end, sinks onto the lower margin), the lower rises LOWER_LID_SHARE of the opening (the
+  upper then stops on it). The plate is held to its turned place by springs, and its skin is then
+  put there (the solve alone shears the lid's thin rim), the correction eased into the skin around;
 - `cheek_puff_l/r` push the cheeks out (air pressure in the mouth);
 - `lip_push_upper/lower` push the lips forward (the lip's own protrusion).
 Template frame (or the adapted head's, same axes), metres.
@@ -34,7 +36,7 @@ import numpy as np
 
 from ..mesh import geometry
 from .contact import Contact, ContactMixin
-from .controls import LOWER_LID_SHARE
+from .controls import LID_EASE, LID_EASE_STEPS, LID_KINEMATIC, LOWER_LID_SHARE
 from .jaw import JawMixin
 
 
@@ -50,7 +52,8 @@ class SkinModel(JawMixin, ContactMixin):
     on_mandible: np.ndarray       # (n,) hypodermis vertex rides on the mandible
     jaw_pivot: np.ndarray
     jaw_axis: np.ndarray
-    lids: dict                    # control -> (dofs (k,), stiffness (k,), eye centre, full angle rad, weight (k,), axis)
+    lids: dict                    # control -> (dofs (k,), stiffness (k,), eye centre, full angle rad, weight (k,),
+                                  # axis, (radius ratio, slide along the axis m) the upper margin sinks by)
     bone_dist: np.ndarray         # (n,2) rest distance of each skin vertex to the cranium, the mandible
     bone_normal: np.ndarray       # (n,3) outward bone normal there
     free: np.ndarray              # (n,) vertices the non-penetration applies to
@@ -83,18 +86,38 @@ class SkinModel(JawMixin, ContactMixin):
             rest_h = self.rest[hyp]
             target = self.on_jaw(rest_h, rot, t)
             f[hyp] += np.where(self.on_mandible[:, None], self.bone_k[:, None] * (target - rest_h), 0.0)
-        for name, (idx, k, centre, full, weight, axis) in self.lids.items():
+        placed = []
+        for name, (idx, k, centre, full, weight, axis, sink) in self.lids.items():
             if name in activations:
                 sign, act = (1.0 if name.startswith("upper") else -1.0), activations[name]
+                meet = 1.0
                 if sign > 0:                   # the upper margin stops where the risen lower one is
-                    act = min(act, 1.0 - LOWER_LID_SHARE * max(activations.get(name.replace("upper", "lower"), 0.0), 0.0))
+                    meet = 1.0 - LOWER_LID_SHARE * max(activations.get(name.replace("upper", "lower"), 0.0), 0.0)
+                    act = min(act, meet)
                 angle = (sign * full * act * weight)[:, None]
                 rel = self.rest[idx] - centre                 # Rodrigues, one angle per dof
                 turned = (rel * np.cos(angle) + np.cross(axis, rel) * np.sin(angle)
                           + np.outer(rel @ axis, axis) * (1 - np.cos(angle)))
+                ratio, shift = sink             # ... and sinks onto the lower margin near the end
+                if ratio != 1.0 or shift:
+                    along = np.outer(turned @ axis, axis)
+                    near_end = np.clip(act / max(meet, 1e-6), 0.0, 1.0) ** 2 * weight
+                    turned = (along + (turned - along) * (1.0 + (ratio - 1.0) * near_end)[:, None]
+                              + np.outer(shift * near_end, axis))
                 f[idx] += k[:, None] * (turned - rel)
+                skin = idx < self.n                # the lid's skin is put on its plate's target
+                placed.append((idx[skin], (centre + turned)[skin], np.clip(weight[skin] / LID_KINEMATIC, 0, 1)))
         u = self.solve(f)
         x = self.rest[: self.n] + u[: self.n]
+        if placed:                             # the lid skin on its plate, the skin around it eased after
+            fix = np.zeros((self.n, 3))
+            on = np.zeros(self.n, bool)
+            for v, target, c in placed:
+                fix[v] += c[:, None] * (target - x[v])
+                on[v] = True
+            for _ in range(LID_EASE_STEPS):
+                fix = np.where(on[:, None], fix, LID_EASE * (self.adjacency @ fix))
+            x += fix
         # skull non-penetration, on the true bone (the mandible moved)
         bn = np.where(self.on_mandible[:, None], self.bone_normal @ rot.T, self.bone_normal)
         contact = Contact(bn, (rot, t))

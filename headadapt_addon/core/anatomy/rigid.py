@@ -1,0 +1,112 @@
+"""Parts carried rigidly by their FDPs (paper eq 25-28): eyes, teeth, tongue; the eyes seated in
+their orbits where the scan says they stand out."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from ..adapt.calibration import Similarity
+
+# rigid parts and the FDPs that carry them (eq 25-28): x axis (a - b), y axis (c - d), reference set
+RIGID_FDPS = {
+    "eye_l": (("3.7", "3.11"), ("3.13", "3.9"), ("3.7", "3.9", "3.11", "3.13")),
+    "eye_r": (("3.8", "3.12"), ("3.14", "3.10"), ("3.8", "3.10", "3.12", "3.14")),
+    "teeth_upper": (("8.3", "8.4"), ("9.15", "8.1"), ("8.3", "8.4", "9.15", "8.1")),
+    "teeth_lower": (("8.3", "8.4"), ("8.2", "2.10"), ("8.3", "8.4", "8.2", "2.10")),
+    "tongue": (("8.3", "8.4"), ("8.2", "2.10"), ("8.3", "8.4", "8.2", "2.10")),
+}
+
+
+def _frame(p, x_pair, y_pair):
+    x = p[x_pair[0]] - p[x_pair[1]]
+    y = p[y_pair[0]] - p[y_pair[1]]
+    x = x / np.linalg.norm(x)
+    y = y - (y @ x) * x
+    y /= np.linalg.norm(y)
+    return np.stack([x, y, np.cross(x, y)])
+
+
+def rigid_from_fdps(part_verts, template_fdps, adapted_fdps, x_pair, y_pair, ref, centre=None):
+    """The paper's eq 25-28 similarity for a rigid part (uniform scale, rotation, translation).
+
+    Scale: the geometric mean of the two axis-length ratios (eq 25 multiplies them, which would
+    scale by an area ratio); rotation: the frame (x, y orthogonalised) of the adapted FDPs times the
+    inverse of the template's; the part's centre keeps its offset from the FDPs' mean (eq 26-27),
+    unless `centre` (where the adaptation map takes the part's centre) is given.
+    """
+    s, t = template_fdps, adapted_fdps
+    ratio = (np.linalg.norm(t[x_pair[0]] - t[x_pair[1]]) * np.linalg.norm(t[y_pair[0]] - t[y_pair[1]])
+             / (np.linalg.norm(s[x_pair[0]] - s[x_pair[1]]) * np.linalg.norm(s[y_pair[0]] - s[y_pair[1]])))
+    scale = float(np.sqrt(ratio))
+    rot = _frame(t, x_pair, y_pair).T @ _frame(s, x_pair, y_pair)
+    c_s = np.asarray(part_verts).mean(axis=0)
+    r_s = np.mean([s[k] for k in ref], axis=0)
+    r_t = np.mean([t[k] for k in ref], axis=0)
+    c_t = r_t - scale * rot @ (r_s - c_s) if centre is None else np.asarray(centre)   # eq 27
+    return Similarity(scale, rot, c_t - scale * rot @ c_s)      # eq 28: T(x) = s R (x - c_s) + c_t
+
+
+EYE_REACH = 0.010             # an eye's surface is looked for this far beyond the eye, m
+EYE_TOLERANCE = 0.0008        # an eye standing out of the scan by more than this goes back, m
+LID_GAP = 0.001               # an eye pushed back stops this far behind the scanned lid, m
+ORBIT_FULL, ORBIT_FADE = 0.003, 0.020   # the orbit moves with its eye out to these distances beyond it, m
+
+
+def surface_point(verts, tris, ref):
+    """Point (3,) of a {"face", "bary"} reference on a mesh (verts (n,3), tris (k,3))."""
+    return np.asarray(ref["bary"]) @ verts[tris[ref["face"]]]
+
+
+def eye_protrusion(scan_query, eye, centre, gaze):
+    """How far (m) the front of an eye (vertices (n,3), centre, unit gaze) stands out of the scanned
+    surface: along rays from the centre through the middle of the eye's front (within ~25 degrees of
+    the gaze, where an open eye shows its cornea and a closed one its lids), the median reach of the
+    eye beyond the scan's first hit; 0 where the scan has nothing in front of the eye (a hole).
+    Not the maximum: at the lid margins an eye off by a millimetre sideways reaches through them."""
+    radial = eye - centre
+    r = np.linalg.norm(radial, axis=1)
+    front = radial @ gaze > 0.9 * r
+    if not front.any():
+        return 0.0
+    hits = scan_query.ray_cast(np.repeat(centre[None], front.sum(), axis=0), radial[front],
+                               r[front] + EYE_REACH, both_ways=False)
+    if not hits.hit.any():
+        return 0.0
+    return max(float(np.median(r[front][hits.hit] - hits.t[hits.hit])), 0.0)
+
+
+def seat_orbits(tpl, scan, parts, rigid, mapped):
+    """Eyes that stand out of the scan by over EYE_TOLERANCE (closed or deep-set lids lie behind
+    where the map put the eye) go back along their gaze until LID_GAP behind it, and the orbit goes
+    with them: the eye socket's lining and the bone around the eye (`mapped`: {bone: (n,3)} through
+    the map) move by the same push, fading out with distance. parts[eye] and rigid[eye] are updated;
+    returns (skin with the sockets moved, bone offsets {bone: (n,3)}), template frame, m."""
+    skin = parts["skin"].copy()
+    offsets = {b: np.zeros_like(p) for b, p in mapped.items()}
+    if scan is None:
+        return skin, offsets
+    socket = tpl.region_mask("eye_socket_l", "eye_socket_r")
+    for eye in ("eye_l", "eye_r"):
+        sim = rigid[eye]
+        centre = parts[eye].mean(axis=0)
+        radius = float(np.linalg.norm(parts[eye] - centre, axis=1).mean())
+        g0 = np.asarray(tpl.meta["eyes"][eye]["gaze"])
+        gaze = sim.rotation @ (g0 / np.linalg.norm(g0))
+        push = eye_protrusion(scan.query, parts[eye], centre, gaze)
+        if push <= EYE_TOLERANCE:       # within what the FDP-carried eye is off anyway (open eyes)
+            continue
+        shift = -(push + LID_GAP) * gaze
+
+        def fade(points, centre=centre, radius=radius, shift=shift):
+            d = np.linalg.norm(points - centre, axis=1) - radius
+            t = np.clip((d - ORBIT_FULL) / (ORBIT_FADE - ORBIT_FULL), 0.0, 1.0)
+            return (1.0 - t * t * (3.0 - 2.0 * t))[:, None] * shift
+
+        parts[eye] = parts[eye] + shift
+        rigid[eye] = dataclasses.replace(sim, translation=sim.translation + shift)
+        skin[socket] += fade(skin[socket])
+        for b in offsets:
+            offsets[b] += fade(mapped[b])
+    return skin, offsets

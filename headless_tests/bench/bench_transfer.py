@@ -1,0 +1,194 @@
+"""Benchmark: anatomy transfer, old (brute-force inside tests) against new, in one run. Prints figures.
+
+    ./ha bench transfer [--reps 5] [--real]
+
+The head: the bundled sample scan adapted as `./ha demo` adapts it (--real adds the CT and the
+two busts of ../shared/scans, or $HEADADAPT_SCANS). On each adapted head anatomy.transfer runs
+`reps` times each way, alternating, and the fastest run of each counts (the machine is shared):
+
+  old   the transfer as it was before core/winding.py: every inside test the brute-force sum
+        over all triangles (inside.winding_numbers), the skin near the bone by MeshQuery's
+        closest point for every visible skin vertex, the template's skin anchors of the bone
+        found anew (the same code with those three put back)
+  new   anatomy.transfer as it is: FastWinding (exact, built once per transfer), _within, the
+        anchors found once per process; "cold" is the first transfer of a process, which finds them
+
+Printed per head: seconds old and new (wall clock; and the process's CPU seconds, less disturbed
+by other work on a shared machine), their ratio, and the largest difference of any vertex of any
+part between the two results (0: bit-identical). Then where the time goes, per stage of the
+transfer (exclusive seconds of the fastest run) and in all inside tests together.
+"""
+import argparse
+import contextlib
+import os
+import pathlib
+import sys
+import time
+
+import numpy as np
+
+ROOT = pathlib.Path(__file__).resolve().parents[2]
+sys.path.insert(0, str(ROOT))
+
+from headadapt_addon.core import adapt, anatomy, meshio
+from headadapt_addon.core.mesh import geometry, winding
+from headadapt_addon.core.mesh.inside import winding_numbers
+from headadapt_addon.core.mesh.spatial import MeshQuery
+from headadapt_addon.core.template import load_template
+
+STAGES = (  # (label, module, function name): timed exclusive of each other
+    ("rest: maps, FDPs, muscles, checks", None, None),
+    ("seat the eyes in the orbits", anatomy.pipeline, "seat_orbits"),
+    ("keep the bone inside the skin", anatomy.pipeline, "keep_inside"),
+    ("relax the pressed bone's folds", geometry, "unfold"),
+    ("clear the visible skin", anatomy.pipeline, "clear_visible_skin"),
+    ("unrelax under the skin (check)", anatomy.pipeline, "unrelax_under_skin"),
+)
+
+
+class BruteWinding:
+    """The old inside test behind FastWinding's interface: every triangle summed at every point."""
+
+    def __init__(self, verts, tris, slack=None):
+        self.verts, self.tris = np.asarray(verts, dtype=np.float64), tris
+
+    def refit(self, verts):
+        self.verts = np.asarray(verts, dtype=np.float64)
+        return self
+
+    def __call__(self, points):
+        return winding_numbers(points, self.verts, self.tris)
+
+
+def old_within(points, verts, tris, reach):
+    """The old selection of skin points near the bone: the closest point for every one."""
+    return MeshQuery(verts, tris, backend="numpy").closest_points(points)[2] < reach
+
+
+@contextlib.contextmanager
+def patched(module, **attrs):
+    saved = {k: getattr(module, k) for k in attrs}
+    for k, v in attrs.items():
+        setattr(module, k, v)
+    try:
+        yield
+    finally:
+        for k, v in saved.items():
+            setattr(module, k, v)
+
+
+class Clock:
+    """Exclusive seconds per stage: a wrapped function's time less that of wrapped calls inside it."""
+
+    def __init__(self):
+        self.seconds, self.stack = {}, []
+
+    def wrap(self, label, fn):
+        def timed(*a, **k):
+            t0 = time.perf_counter()
+            self.stack.append(0.0)
+            try:
+                return fn(*a, **k)
+            finally:
+                inner = self.stack.pop()
+                dt = time.perf_counter() - t0
+                self.seconds[label] = self.seconds.get(label, 0.0) + dt - inner
+                if self.stack:
+                    self.stack[-1] += dt
+        return timed
+
+
+def timed_transfer(tpl, result, old, cold=False):
+    """(Anatomy, total seconds, {stage: exclusive seconds}, seconds in inside tests, CPU seconds)."""
+    clock = Clock()
+    inside = {"s": 0.0}
+    base = BruteWinding if old else winding.FastWinding
+
+    class Counted(base):
+        def __init__(self, *a, **k):
+            t0 = time.perf_counter()
+            super().__init__(*a, **k)
+            inside["s"] += time.perf_counter() - t0
+
+        def __call__(self, points):
+            t0 = time.perf_counter()
+            try:
+                return super().__call__(points)
+            finally:
+                inside["s"] += time.perf_counter() - t0
+
+    with contextlib.ExitStack() as stack:
+        stack.enter_context(patched(winding, FastWinding=Counted))
+        if old:
+            stack.enter_context(patched(anatomy.bone, _within=old_within))
+        if old or cold:
+            stack.enter_context(patched(anatomy.bone, _ANCHORS={}))
+        for label, module, name in STAGES[1:]:
+            stack.enter_context(patched(module, **{name: clock.wrap(label, getattr(module, name))}))
+        t0, c0 = time.perf_counter(), time.process_time()
+        ana = clock.wrap(STAGES[0][0], anatomy.transfer)(tpl, result)
+        total, cpu = time.perf_counter() - t0, time.process_time() - c0
+    return ana, total, clock.seconds, inside["s"], cpu
+
+
+def heads(tpl, real):
+    """[(name, AdaptResult)]: the sample scan as ./ha demo adapts it, and with --real the CT and busts."""
+    sample = ROOT / "assets" / "sample_scan"
+    verts, tris = meshio.read_mesh(sample / "scan.ply")[:2]
+    points, meta = meshio.read_landmark_file(sample / "landmarks.json")
+    markers = meta.get("markers")
+    out = [("sample scan", adapt.adapt(tpl, verts, tris, points, adapt.AdaptOptions(max_levels=4), markers=markers))]
+    if real:
+        scans = pathlib.Path(os.environ.get("HEADADAPT_SCANS", ROOT.parent / "shared" / "scans"))
+        if not scans.is_dir():
+            sys.exit(f"bench transfer --real: no scans at {scans} (set HEADADAPT_SCANS)")
+        from tools import realct
+
+        skin_v, skin_t, _, _, clicks = realct.load_ct(scans)
+        out.append(("headsq CT", adapt.adapt(tpl, skin_v, skin_t, clicks)))
+        for name, path in (("nefertiti", "nefertiti/nefertiti-lowres.obj"),
+                           ("demosthenes", "demosthenes/demosthenes-low-res.obj")):
+            verts, tris = meshio.read_mesh(scans / path)[:2]
+            clicks = meshio.read_landmarks(ROOT / "headless_tests" / "data" / f"{name}_fdps.json")
+            out.append((name, adapt.adapt(tpl, verts, tris, clicks)))
+    return out
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--reps", type=int, default=5, help="runs each way per head (the fastest counts)")
+    parser.add_argument("--real", action="store_true", help="also the CT and the busts in ../shared/scans")
+    args = parser.parse_args(argv)
+    tpl = load_template()
+    rows = []
+    for name, result in heads(tpl, args.real):
+        best = {}
+        for _ in range(args.reps):
+            for key in ("old", "cold", "new"):
+                run = timed_transfer(tpl, result, key == "old", key == "cold")
+                if key not in best or run[1] < best[key][1]:
+                    best[key] = run
+        diff = {p: float(np.abs(best["old"][0].parts[p] - best["new"][0].parts[p]).max()) for p in best["old"][0].parts}
+        rows.append((name, best, diff))
+    print(f"anatomy transfer, fastest of {args.reps} runs each way in one process "
+          "(old: brute-force inside tests, as before core/winding.py)")
+    print(f"{'head':14s} {'old s':>7s} {'new s':>7s} {'ratio':>7s} {'cold s':>7s} {'ratio':>7s}  "
+          f"{'CPU s old':>9s} {'new':>6s}  largest vertex difference between old and new")
+    for name, best, diff in rows:
+        worst = max(diff, key=diff.get)
+        old, new, cold = (best[k][1] for k in ("old", "new", "cold"))
+        print(f"{name:14s} {old:7.3f} {new:7.3f} {old / new:6.1f}x {cold:7.3f} {old / cold:6.1f}x  "
+              f"{best['old'][4]:9.3f} {best['new'][4]:6.3f}  "
+              f"{diff[worst]:.1e} m ({worst}; {'all parts equal' if diff[worst] == 0 else 'per part: ' + str(diff)})")
+    for name, best, _ in rows:
+        print()
+        print(f"where the time goes, {name} (exclusive seconds of the fastest run):")
+        print(f"  {'stage':36s} {'old':>7s} {'new':>7s} {'cold':>7s}")
+        for label, _, _ in STAGES:
+            print(f"  {label:36s} " + " ".join(f"{best[k][2].get(label, 0.0):7.3f}" for k in ("old", "new", "cold")))
+        print(f"  {'total':36s} " + " ".join(f"{best[k][1]:7.3f}" for k in ("old", "new", "cold")))
+        print(f"  {'of it in inside tests (all stages)':36s} " + " ".join(f"{best[k][3]:7.3f}" for k in ("old", "new", "cold")))
+
+
+if __name__ == "__main__":
+    main()
