@@ -15,6 +15,8 @@ from ..blender import bridge, landmarks, scene
 from ..blender.scene import head_root
 from ..core import mpeg4
 from ..core.exceptions import HeadAdaptError
+from . import jobs
+from .jobs import Job, Modal, Run
 
 
 def template():
@@ -331,16 +333,6 @@ def adapt_options(s, levels=-1):
                          keep_flagged=not s.drop_flagged)
 
 
-def show_progress(context, fraction, message):
-    """Progress of a long operator: the window manager's bar (cursor), the status bar's text, and the
-    scene setting progress_text the panels (and tests) read."""
-    context.window_manager.progress_update(int(100 * fraction))
-    text = f"HeadAdapt: {100 * fraction:.0f}% {message}" if message else ""
-    context.scene.headadapt.progress_text = text
-    if context.workspace is not None:
-        context.workspace.status_text_set(text or None)
-
-
 def remove_result(root):
     """Delete a result hierarchy (the root, everything under it, their meshes and curves) and its
     collection when that is left empty."""
@@ -357,132 +349,7 @@ def remove_result(root):
             bpy.data.collections.remove(c)
 
 
-class Cancelled(Exception):
-    """Raised inside a Job's work at its next progress step after cancel()."""
-
-
-class Job:
-    """A core computation (numpy, no bpy) on a worker thread, so Blender's window stays responsive:
-    work(say) -> value, where say(fraction, message) reports progress and, after cancel(), stops the
-    work at its next step (Cancelled). Nothing in the scene changes until the caller uses .value."""
-
-    def __init__(self, work):
-        import threading
-        self.fraction, self.message, self.value, self.error = 0.0, "starting", None, None
-        self._cancel = threading.Event()
-        self._thread = threading.Thread(target=self._run, args=(work,), daemon=True)
-
-    def start(self):
-        self._thread.start()
-        return self
-
-    def _say(self, fraction, message):
-        if self._cancel.is_set():
-            raise Cancelled
-        self.fraction, self.message = fraction, message
-
-    def _run(self, work):
-        try:
-            self.value = work(self._say)
-        except BaseException as exc:       # handed to the main thread, which reports it
-            self.error = exc
-
-    def cancel(self):
-        self._cancel.set()
-
-    @property
-    def done(self):
-        return not self._thread.is_alive()
-
-    def wait(self, seconds=None):
-        self._thread.join(seconds)
-        return self.done
-
-
-class _Run:
-    """A long operator's run: self.work(say) (numpy only) on a Job, self.finish(context, value, report)
-    in the main thread when it is done. The modal operator feeds it its events (step); Esc cancels
-    and leaves the scene as it was (nothing is written to the scene before finish)."""
-    what = "the work"
-
-    def step(self, context, event_type, report):
-        """Handle one event: ESC cancels, TIMER shows progress and finishes when the job is done;
-        returns the operator's answer. report(kind set, text) as Operator.report."""
-        if event_type == "ESC":
-            self.job.cancel()
-            self.end(context)
-            report({"WARNING"}, f"{self.what} cancelled: the scene is as it was")
-            return {"CANCELLED"}
-        if event_type != "TIMER":
-            return {"PASS_THROUGH"}
-        if not self.job.done:
-            show_progress(context, self.job.fraction, self.job.message)
-            return {"RUNNING_MODAL"}
-        if self.job.error is not None:
-            self.end(context)
-            if isinstance(self.job.error, HeadAdaptError):
-                report({"ERROR"}, str(self.job.error))
-                return {"CANCELLED"}
-            raise self.job.error
-        try:
-            return self.finish(context, self.job.value, report)
-        finally:
-            self.end(context)
-
-    def run_here(self, context, report):
-        """The same work in the calling thread, waited for (bpy.ops from scripts and tests)."""
-        context.window_manager.progress_begin(0, 100)
-        try:
-            value = self.work(lambda f, msg: show_progress(context, f, msg))
-        except HeadAdaptError as exc:
-            self.end(context)
-            report({"ERROR"}, str(exc))
-            return {"CANCELLED"}
-        try:
-            return self.finish(context, value, report)
-        finally:
-            self.end(context)
-
-    def end(self, context):
-        context.window_manager.progress_end()
-        context.scene.headadapt.progress_text = ""
-        if context.workspace is not None:
-            context.workspace.status_text_set(None)
-
-
-class _Modal:
-    """invoke/modal of an operator whose make_run(context) gives a _Run (or a problem string)."""
-
-    def invoke(self, context, _event):
-        """From a button: the work on a thread, progress and Esc through a timer."""
-        if context.window is None:
-            return self.execute(context)
-        run = self.make_run(context)
-        if isinstance(run, str):
-            return self.fail(run)
-        self._run = run
-        wm = context.window_manager
-        wm.progress_begin(0, 100)
-        self._timer = wm.event_timer_add(0.25, window=context.window)
-        wm.modal_handler_add(self)
-        run.job.start()
-        return {"RUNNING_MODAL"}
-
-    def modal(self, context, event):
-        answer = self._run.step(context, event.type, self.report)
-        if answer & {"FINISHED", "CANCELLED"}:
-            context.window_manager.event_timer_remove(self._timer)
-        return answer
-
-    def execute(self, context):
-        """From Python (bpy.ops, scripts): the same work, waited for."""
-        run = self.make_run(context)
-        if isinstance(run, str):
-            return self.fail(run)
-        return run.run_here(context, self.report)
-
-
-class AdaptRun(_Run):
+class AdaptRun(Run):
     """One Adapt of the scene's scan: the fit and the anatomy transfer on a Job, the result objects
     built in the main thread when it is done."""
     what = "Adapt"
@@ -515,7 +382,7 @@ class AdaptRun(_Run):
         from ..blender import blendout
         from ..core.adapt import outcome as outcome_text
         s = settings(context)
-        show_progress(context, 1.0, "building the result objects")
+        jobs.show_progress(context, 1.0, "building the result objects")
         old = s.result_root
         if old is not None and not s.keep_results and old.name in bpy.data.objects:
             remove_result(old)
@@ -536,7 +403,7 @@ class AdaptRun(_Run):
         return {"FINISHED"}
 
 
-class BakeRun(_Run):
+class BakeRun(Run):
     """One Bake of the head's expressions: the simulation on a Job, the shape keys written at the end."""
     what = "Bake"
 
@@ -554,14 +421,14 @@ class BakeRun(_Run):
 
     def finish(self, context, value, report):
         from ..blender import blendout
-        show_progress(context, 1.0, "writing the shape keys")
+        jobs.show_progress(context, 1.0, "writing the shape keys")
         timing = blendout.apply_bake(self.root, *value, self.kinds, self.preview)
         report({"INFO"}, f"baked {timing['keys']} shape keys on {self.root.name!r} "
                          f"({timing['per_key_s'] * 1000:.0f} ms per key)")
         return {"FINISHED"}
 
 
-class HEADADAPT_OT_adapt(_Modal, _Base, bpy.types.Operator):
+class HEADADAPT_OT_adapt(Modal, _Base, bpy.types.Operator):
     """Adapt the template onto the scan level by level (Esc cancels); the result replaces the previous one (or is kept beside it)"""
     bl_idname = "headadapt.adapt"
     bl_label = "Adapt"
@@ -576,7 +443,7 @@ class HEADADAPT_OT_adapt(_Modal, _Base, bpy.types.Operator):
         return landmark_problem(context) or AdaptRun(context, self.levels)
 
 
-class HEADADAPT_OT_bake_expressions(_Modal, _Base, bpy.types.Operator):
+class HEADADAPT_OT_bake_expressions(Modal, _Base, bpy.types.Operator):
     """Simulate the skin for the chosen sets and bake them to shape keys, with a preview action (Esc cancels)"""
     bl_idname = "headadapt.bake_expressions"
     bl_label = "Bake Expressions"

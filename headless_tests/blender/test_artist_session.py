@@ -253,16 +253,16 @@ def test_adapt_reports_progress_and_replaces_its_last_result(ui_scene, monkeypat
     import bpy
 
     from headadapt_addon.blender import landmarks
-    from headadapt_addon.ui import operators
+    from headadapt_addon.ui import jobs
 
     seen = []
-    original = operators.show_progress
+    original = jobs.show_progress
 
     def record(context, fraction, message):
         original(context, fraction, message)
         seen.append((fraction, message, context.scene.headadapt.progress_text))
 
-    monkeypatch.setattr(operators, "show_progress", record)
+    monkeypatch.setattr(jobs, "show_progress", record)
     with bpy.context.temp_override(**ui_scene):
         scan = _sample_scan("Anna")
         landmarks.set_landmarks(scan, meshio.read_landmarks(SAMPLE_DIR / "landmarks.json"))
@@ -299,7 +299,7 @@ def test_adapt_from_a_button_works_on_a_thread_and_esc_leaves_the_scene_as_it_wa
     import bpy
 
     from headadapt_addon.blender import landmarks
-    from headadapt_addon.ui import operators
+    from headadapt_addon.ui import jobs, operators
 
     with bpy.context.temp_override(**ui_scene):
         ctx, wm, s = bpy.context, bpy.context.window_manager, bpy.context.scene.headadapt
@@ -324,7 +324,7 @@ def test_adapt_from_a_button_works_on_a_thread_and_esc_leaves_the_scene_as_it_wa
             time.sleep(0.02)
         assert s.progress_text.startswith("HeadAdapt: ")
         assert event("ESC") == {"CANCELLED"}
-        assert op._run.job.wait(60) and isinstance(op._run.job.error, operators.Cancelled)
+        assert op._run.job.wait(60) and isinstance(op._run.job.error, jobs.Cancelled)
         assert sorted(o.name for o in bpy.data.objects) == before and s.result_root is None
         assert s.progress_text == "" and s.report_json == ""
         assert reports[-1] == ({"WARNING"}, "Adapt cancelled: the scene is as it was")
@@ -344,16 +344,16 @@ def test_bake_reports_progress_and_esc_leaves_no_shape_keys(ui_scene, monkeypatc
 
     import bpy
 
-    from headadapt_addon.ui import operators
+    from headadapt_addon.ui import jobs, operators
 
     seen = []
-    original = operators.show_progress
+    original = jobs.show_progress
 
     def record(context, fraction, message):
         original(context, fraction, message)
         seen.append((fraction, message, context.scene.headadapt.progress_text))
 
-    monkeypatch.setattr(operators, "show_progress", record)
+    monkeypatch.setattr(jobs, "show_progress", record)
     with bpy.context.temp_override(**ui_scene):
         ctx, wm, s = bpy.context, bpy.context.window_manager, bpy.context.scene.headadapt
         assert bpy.ops.headadapt.add_template() == {"FINISHED"}
@@ -372,7 +372,7 @@ def test_bake_reports_progress_and_esc_leaves_no_shape_keys(ui_scene, monkeypatc
                 == {"RUNNING_MODAL"}
             time.sleep(0.05)
         assert operators.HEADADAPT_OT_bake_expressions.modal(op, ctx, SimpleNamespace(type="ESC")) == {"CANCELLED"}
-        assert run.job.wait(120) and isinstance(run.job.error, operators.Cancelled)
+        assert run.job.wait(120) and isinstance(run.job.error, jobs.Cancelled)
         assert skin.data.shape_keys is None and s.progress_text == ""
         assert reports[-1] == ({"WARNING"}, "Bake cancelled: the scene is as it was")
         # through bpy.ops: progress per key, rising to the end, each shown as the status text
