@@ -50,6 +50,8 @@ def build_result_objects(tpl, result, target_scene, scan_matrix=None, anatomy=No
     if name:
         for part in MESH_PARTS:
             objs[part].name = objs[part].data.name = f"{name} {part}"
+    head_pivot = result.map_points(np.asarray(tpl.meta["head_pivot"], dtype=float)[None])[0]
+    root["headadapt_head_pivot"] = [float(c) for c in head_pivot]      # the adapted head turns about it
     pivot = ana.jaw_pivot
     objs["jaw_pivot"].location = pivot
     for name, verts in parts.items():
@@ -61,6 +63,9 @@ def build_result_objects(tpl, result, target_scene, scan_matrix=None, anatomy=No
     for o in root.children_recursive:
         if "headadapt_fdp" in o:
             o.location = ana.fdps[o["headadapt_fdp"]]
+        if "headadapt_marker" in o:         # held-out markers: where the adapted skin puts them
+            ref = tpl.meta["markers"][o["headadapt_marker"]]
+            o.location = np.asarray(ref["bary"]) @ parts[ref["part"]][tpl.parts[ref["part"]].tris[ref["face"]]]
         name = o.get("headadapt_muscle")
         if name in muscles:
             pts = np.array([muscles[name]["attachment"], muscles[name]["insertion"]])

@@ -81,6 +81,7 @@ def add_template(tpl, collection=None, name=ROOT_NAME):
     collection.objects.link(root)
     root["headadapt_part"] = "root"
     root["headadapt_template_sha256"] = tpl.meta["content_sha256"]
+    root["headadapt_head_pivot"] = [float(c) for c in tpl.meta["head_pivot"]]   # what the head turns about
 
     skin = _mesh_object("skin", tpl.skin.verts, tpl.skin.quads, collection, root, COLOURS["skin"])
     attr = skin.data.attributes.new("ha_region", "INT", "POINT")

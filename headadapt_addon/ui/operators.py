@@ -226,12 +226,16 @@ class HEADADAPT_OT_suggest_landmarks(_Base, bpy.types.Operator):
     def execute(self, context):
         from ..core.adapt import suggest
         scan, verts, tris = _scan_arrays(context)
-        try:
+        try:       # the clicks judged as Calibrate judges them: a wrong unit or wrong names refused, named
+            check_clicks(context)
             proposed = suggest.suggest_fdps(template(), verts, tris, landmarks.get_landmarks(scan))
         except HeadAdaptError as exc:
             return self.fail(str(exc))
+        if not proposed:
+            self.report({"INFO"}, "every FDP a scanner sees is placed already: nothing to suggest")
+            return {"FINISHED"}
         landmarks.set_landmarks(scan, proposed, prop=landmarks.SUGGESTED_PROP)
-        self.report({"INFO"}, f"suggested {len(proposed)} FDPs: accept them or move them")
+        self.report({"INFO"}, f"suggested {len(proposed)} FDPs: accept or reject them one by one, or all at once")
         return {"FINISHED"}
 
 
@@ -268,27 +272,13 @@ class HEADADAPT_OT_calibrate(_Base, bpy.types.Operator):
         return poll_with_message(cls, landmark_problem(context))
 
     def execute(self, context):
-        from ..core.adapt import pipeline
         s = settings(context)
-        problem = landmark_problem(context)
-        if problem:
-            return self.fail(problem)
-        scan, verts, tris = _scan_arrays(context)
-        pts = landmarks.get_landmarks(scan)
         s.calibration_rms_mm = -1.0
-        try:       # the batch's own step 1: labels put right, the similarity, every click on the scan
-            fit, _tpl_fdps, q_fdp, sim, info = pipeline.calibrate(template(), verts, tris, pts,
-                                                                  adapt_options(s))
-            pipeline.check_on_surface(fit.scan, q_fdp, fit.options)
+        try:
+            q_fdp, sim, info, rms_mm = check_clicks(context)
         except HeadAdaptError as exc:
-            hint = unit_hint(verts, pts)
-            return self.fail(str(exc) + (f"; {hint}" if hint else ""))
-        rms_mm = info["rms"] * 1000.0
+            return self.fail(str(exc))
         head_mm = head_size_mm()
-        if rms_mm > CALIBRATION_RMS_LIMIT * head_mm:
-            return self.fail(f"the landmarks do not fit the template's face: calibration RMS {rms_mm:.1f} mm is "
-                             f"{100 * rms_mm / head_mm:.0f}% of the head's width ({head_mm:.0f} mm; limit "
-                             f"{100 * CALIBRATION_RMS_LIMIT:.0f}%): FDPs given the wrong names, or a mirrored scan")
         s.calibration_rms_mm = rms_mm
         s.scan["headadapt_calibration"] = json.dumps({"matrix": sim.matrix4().tolist(), **{
             k: v for k, v in info.items() if k != "residuals"}}, default=float)
@@ -300,6 +290,32 @@ class HEADADAPT_OT_calibrate(_Base, bpy.types.Operator):
         else:
             self.report({"INFO"}, msg)
         return {"FINISHED"}
+
+
+def check_clicks(context):
+    """The batch's step 1 on the scene's clicks (labels put right, the similarity, every click on the
+    scan), the RMS judged against the head's width: (clicked FDPs, similarity, info, RMS mm), or a
+    HeadAdaptError naming the cause (too few, another unit, wrong names, a mirrored scan)."""
+    from ..core.adapt import pipeline
+    problem = landmark_problem(context)
+    if problem:
+        raise HeadAdaptError(problem)
+    scan, verts, tris = _scan_arrays(context)
+    pts = landmarks.get_landmarks(scan)
+    try:
+        fit, _tpl_fdps, q_fdp, sim, info = pipeline.calibrate(template(), verts, tris, pts,
+                                                              adapt_options(settings(context)))
+        pipeline.check_on_surface(fit.scan, q_fdp, fit.options)
+    except HeadAdaptError as exc:
+        hint = unit_hint(verts, pts)
+        raise HeadAdaptError(str(exc) + (f"; {hint}" if hint else "")) from exc
+    rms_mm = info["rms"] * 1000.0
+    head_mm = head_size_mm()
+    if rms_mm > CALIBRATION_RMS_LIMIT * head_mm:
+        raise HeadAdaptError(f"the landmarks do not fit the template's face: calibration RMS {rms_mm:.1f} mm is "
+                             f"{100 * rms_mm / head_mm:.0f}% of the head's width ({head_mm:.0f} mm; limit "
+                             f"{100 * CALIBRATION_RMS_LIMIT:.0f}%): FDPs given the wrong names, or a mirrored scan")
+    return q_fdp, sim, info, rms_mm
 
 
 CALIBRATION_RMS_LIMIT = 0.05     # of the head's width: people's faces differ from the template's by 1-3%

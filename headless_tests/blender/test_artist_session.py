@@ -112,7 +112,7 @@ def test_landmark_file_with_nan_is_refused_by_the_operator(ui_scene, tmp_path):
         landmarks.set_landmarks(scan, {"3.7": [1.0, 2.0, 3.0]})
         path = tmp_path / "nan.json"
         path.write_text('{"points": {"3.7": [NaN, 0, 0], "3.12": [1, 2, 3], "9.3": [0, 1, 0], "2.10": [0, 0, 1]}}')
-        with pytest.raises(RuntimeError, match="NaN|not a number|finite"):
+        with pytest.raises(RuntimeError, match=r"nan.json: cannot read landmarks \(NaN is not a number\)"):
             bpy.ops.headadapt.import_landmarks(filepath=str(path))
         assert list(landmarks.get_landmarks(scan)) == ["3.7"]          # unchanged
 
@@ -383,3 +383,84 @@ def test_bake_reports_progress_and_esc_leaves_no_shape_keys(ui_scene, monkeypatc
         assert {"baking joy", "baking surprise"} <= {m for _f, m, _t in seen}
         assert all(t.startswith("HeadAdapt: ") and m in t for _f, m, t in seen)
         assert "joy" in skin.data.shape_keys.key_blocks and s.progress_text == ""
+
+
+def test_suggest_refuses_clicks_in_another_unit_or_under_wrong_names(ui_scene):
+    """Suggest the Rest judges the clicks as Calibrate does: the cause named, nothing suggested."""
+    import bpy
+
+    from headadapt_addon.blender import landmarks
+    from headadapt_addon.core import mpeg4
+
+    clicks = meshio.read_landmarks(SAMPLE_DIR / "landmarks.json")
+    eight = {k: clicks[k] for k in mpeg4.CLICKS_8}
+    with bpy.context.temp_override(**ui_scene):
+        scan = _sample_scan()
+        landmarks.set_landmarks(scan, {k: v / 10.0 for k, v in eight.items()})      # cm on a mm scan
+        with pytest.raises(RuntimeError, match="another unit"):
+            bpy.ops.headadapt.suggest_landmarks()
+        assert landmarks.SUGGESTED_PROP not in scan
+        wrong = dict(eight)
+        for a, b in (("9.3", "2.10"), ("3.7", "8.4"), ("3.12", "8.3")):
+            wrong[a], wrong[b] = eight[b], eight[a]
+        landmarks.set_landmarks(scan, wrong)
+        with pytest.raises(RuntimeError, match="wrong names"):
+            bpy.ops.headadapt.suggest_landmarks()
+        assert landmarks.SUGGESTED_PROP not in scan
+        landmarks.set_landmarks(scan, eight)
+        assert bpy.ops.headadapt.suggest_landmarks() == {"FINISHED"}
+        suggested = landmarks.get_landmarks(scan, landmarks.SUGGESTED_PROP)
+        assert len(suggested) > 40 and not set(suggested) & set(eight)
+
+
+@pytest.mark.slow
+def test_markers_and_the_head_turn_follow_the_adapted_head(ui_scene, tmp_path):
+    """Held-out marker objects sit on the adapted skin, not at the template's positions; a .fap's head
+    rotation turns the adapted head about its own head pivot (FDP 7.1), which stays where it is."""
+    import bpy
+    import mathutils
+
+    from headadapt_addon.blender import animation, landmarks, scene
+    from headadapt_addon.core import mpeg4
+    from headadapt_addon.core.fapfile import FapAnimation, write_fap
+    from headadapt_addon.core.template import bundled_template
+
+    tpl = bundled_template()
+    with bpy.context.temp_override(**ui_scene):
+        scan = _sample_scan()
+        landmarks.set_landmarks(scan, meshio.read_landmarks(SAMPLE_DIR / "landmarks.json"))
+        assert bpy.ops.headadapt.adapt(levels=1) == {"FINISHED"}
+        root = bpy.context.scene.headadapt.result_root
+        objs = scene.template_objects(root)
+        skin = objs["skin"]
+        skin_verts = np.array([v.co for v in skin.data.vertices])
+        moved = []
+        markers = [o for o in root.children_recursive if "headadapt_marker" in o]
+        assert len(markers) == len(tpl.meta["markers"])
+        for o in markers:
+            ref = tpl.meta["markers"][o["headadapt_marker"]]
+            on_skin = np.asarray(ref["bary"]) @ skin_verts[tpl.skin.tris[ref["face"]]]
+            assert np.allclose(np.array(o.location), on_skin, atol=1e-6), o.name
+            moved.append(np.linalg.norm(np.array(o.location) - tpl.marker_points()[o["headadapt_marker"]]))
+        assert max(moved) > 1e-3                            # the sample head is not the template's
+        # the head turns about the adapted head pivot (root frame), not about the root's origin
+        pivot = animation.head_pivot(root)
+        assert np.linalg.norm(pivot - np.asarray(tpl.meta["head_pivot"])) < 0.05
+        skin["headadapt_keys"] = json.dumps({"joy": {"kind": "expression", "parts": ["skin"], "fap_units": 0}})
+        n = 3
+        vals = np.full((n, mpeg4.N_FAPS + 1), np.nan)
+        vals[:, 48], vals[:, 49], vals[:, 50] = [0, 0, 20000], [0, 10000, 20000], [0, 0, -15000]
+        write_fap(tmp_path / "turn.fap", FapAnimation("turn", 25.0, np.arange(n), vals,
+                                                      np.full((n, 4), np.nan), np.full((n, 6), np.nan)))
+        bpy.context.scene.frame_set(1)
+        rest = root.matrix_world @ mathutils.Vector(pivot)
+        nose = next(o for o in root.children_recursive if o.get("headadapt_fdp") == "9.3")
+        nose_rest = nose.matrix_world.translation.copy()
+        pitch = root.rotation_euler[0]            # the root carries the scan's placement: turned from it
+        assert bpy.ops.headadapt.import_fap(filepath=str(tmp_path / "turn.fap")) == {"FINISHED"}
+        for frame in (1, 2, 3):
+            bpy.context.scene.frame_set(frame)
+            assert (root.matrix_world @ mathutils.Vector(pivot) - rest).length < 1e-4 * root.matrix_world.median_scale
+        assert root.rotation_euler[0] == pytest.approx(pitch + 0.2, abs=1e-5)
+        # the face turns: the nose tip moves by about its distance from the pivot times the angle
+        assert (nose.matrix_world.translation - nose_rest).length > 0.1 * (nose_rest - rest).length

@@ -226,9 +226,14 @@ def test_batch_writes_a_blend_that_reopens_with_the_report(tmp_path):
 @pytest.mark.slow
 def test_expressions_panel_bakes_the_template_and_imports_a_fap_file(ui_scene, tmp_path):
     import bpy
+    from mathutils import Vector
 
     from headadapt_addon.core import mpeg4
     from headadapt_addon.core.fapfile import FapAnimation, write_fap
+    from headadapt_addon.core.template import bundled_template
+
+    def tpl_head_pivot():
+        return bundled_template().meta["head_pivot"]
 
     with bpy.context.temp_override(**ui_scene):
         with pytest.raises(RuntimeError, match="poll"):
@@ -254,11 +259,17 @@ def test_expressions_panel_bakes_the_template_and_imports_a_fap_file(ui_scene, t
         n = 3
         vals = np.full((n, mpeg4.N_FAPS + 1), np.nan)
         vals[:, 3] = [0, 256, 512]
+        vals[:, 48] = [0, 0, 10000]
         vals[:, 49] = [0, 0, 20000]
         write_fap(tmp_path / "t.fap", FapAnimation("t", 25.0, np.arange(n), vals, np.full((n, 4), np.nan),
                                                    np.full((n, 6), np.nan)))
+        sc.frame_set(1)
+        rest = np.array(root.matrix_world @ Vector(tpl_head_pivot()))
         assert bpy.ops.headadapt.import_fap(filepath=str(tmp_path / "t.fap")) == {"FINISHED"}
         sc.frame_set(3)
+        # the head turns about its pivot (FDP 7.1, the top of the spine), which stays put
+        assert np.allclose(np.array(root.matrix_world @ Vector(tpl_head_pivot())), rest, atol=1e-5)
+        assert root.rotation_euler[0] == pytest.approx(0.1, abs=1e-5)
         info = json.loads(skin["headadapt_keys"])
         assert kb["open_jaw"].value == pytest.approx(512 / info["open_jaw"]["fap_units"], rel=1e-4)
         assert root.rotation_euler[2] == pytest.approx(0.2, abs=1e-5)
