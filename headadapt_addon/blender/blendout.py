@@ -10,21 +10,10 @@ import numpy as np
 
 from ..core.anatomy import transfer
 from ..core.exceptions import FileFormatError
-from . import animation, bridge, scene
+from . import animation, bridge, scene, view
+from .view import heat_colours  # noqa: F401  (blendout.heat_colours: the colours of the heat map)
 
 RESULT_COLLECTION = "HeadAdapt result"
-
-
-def heat_colours(dist_mm, limit_mm=3.0):
-    """RGBA (n,4): blue at 0 mm through green and yellow to red at limit_mm and beyond; grey where NaN (no scan)."""
-    dist_mm = np.asarray(dist_mm, dtype=float)
-    t = np.clip(np.nan_to_num(dist_mm, nan=0.0) / limit_mm, 0.0, 1.0)
-    r = np.clip(2 * t, 0, 1)
-    g = np.clip(2 - 2 * t, 0, 1) * np.clip(2 * t + 0.3, 0, 1)
-    b = np.clip(1 - 2 * t, 0, 1)
-    rgba = np.c_[r, g, b, np.ones_like(t)]
-    rgba[np.isnan(dist_mm)] = (0.6, 0.6, 0.6, 1.0)
-    return rgba
 
 
 MESH_PARTS = ("skin", "cranium", "mandible", "teeth_lower", "eye_l", "eye_r", "teeth_upper", "tongue")
@@ -79,7 +68,8 @@ def build_result_objects(tpl, result, target_scene, scan_matrix=None, anatomy=No
     root["headadapt_fapus"] = json.dumps(ana.fapus)
     root["headadapt_anatomy"] = ana.to_plain()      # float64, exactly what the bake simulates on
     dist_mm = result.distances * 1000.0
-    bridge.set_point_colors(objs["skin"].data, "HeadAdapt distance", heat_colours(dist_mm))
+    bridge.set_point_colors(objs["skin"].data, view.HEAT_ATTRIBUTE, view.heat_colours(dist_mm))
+    view.add_heat_legend(root, tpl, coll)
     m = mathutils.Matrix(result.similarity.inverse().matrix4().tolist())
     root.matrix_world = (scan_matrix if scan_matrix is not None else mathutils.Matrix.Identity(4)) @ m
     root["headadapt_report"] = json.dumps(result.report(), default=float)
@@ -143,6 +133,8 @@ def build_result_scene(tpl, result, scan_verts, scan_tris, landmarks, report, sc
     ana = transfer(tpl, result)
     root = build_result_objects(tpl, result, bpy.context.scene, anatomy=ana)
     add_camera_and_light(root, bpy.context.scene)
+    view.show_heat_map(bpy.data.screens)            # opened, the .blend shows the heat map and the legend
+    view.show_scan_as_wire(scan_obj)
     if bake:
         report = dict(report, bake=bake_result(tpl, root, anatomy=ana, progress=progress))
     text = bpy.data.texts.new("HeadAdapt report")

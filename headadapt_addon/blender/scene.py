@@ -12,6 +12,7 @@ Layout (all objects tagged with the custom property ``headadapt_part``)::
       Markers (empty) -> "Marker glabella" ...
       Muscles (empty) -> one curve per linear muscle (attachment -> insertion), one closed
                          curve per sphincter ellipse
+    FDPs, markers and muscles (the helpers) start hidden: the panels' Display toggles show them.
 """
 
 import bpy
@@ -28,6 +29,7 @@ COLOURS = {
     "muscle": (0.75, 0.1, 0.1, 1.0), "sphincter": (0.55, 0.1, 0.45, 1.0),
 }
 FDP_SIZE_M = 0.0015
+HELPER_PARTS = ("fdps", "fdp", "markers", "marker", "muscles", "muscle", "sphincter")
 
 
 def _material(name, colour):
@@ -126,6 +128,10 @@ def add_template(tpl, collection=None, name=ROOT_NAME):
         obj = _link(_curve(sph["name"], ring, collection, group, COLOURS["sphincter"], cyclic=True), collection,
                     group, "sphincter")
         obj["headadapt_muscle"] = sph["name"]
+    for obj in root.children_recursive:     # the helpers hidden until asked for (view.set_helpers_visible)
+        if obj.get("headadapt_part") in HELPER_PARTS:
+            obj.hide_set(True)                # the eye: still evaluated (world matrices right)
+            obj.hide_render = True
     bpy.context.view_layer.update()   # world matrices of the new hierarchy
     return root
 
@@ -135,7 +141,7 @@ def template_objects(root):
     out = {}
     for obj in root.children_recursive:
         key = obj.get("headadapt_part", obj.name)
-        if key in ("fdp", "marker", "muscle", "sphincter"):
+        if key in ("fdp", "marker", "muscle", "sphincter", "legend_label"):
             key = obj.name
         out[key] = obj
     return out

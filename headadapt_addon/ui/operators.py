@@ -17,6 +17,7 @@ from ..core import mpeg4
 from ..core.exceptions import HeadAdaptError
 from . import jobs
 from .jobs import Job, Modal, Run
+from .props import apply_display
 
 
 def template():
@@ -110,6 +111,7 @@ class HEADADAPT_OT_add_template(_Base, bpy.types.Operator):
             context.scene.collection.children.link(coll)
         root = scene.add_template(template(), coll)
         settings(context).template_root = root
+        apply_display(settings(context), context)
         self.report({"INFO"}, f"added the template: {len(template().skin.verts):,} skin vertices, "
                               f"{len(template().meta['fdps'])} FDPs")
         return {"FINISHED"}
@@ -406,6 +408,7 @@ class AdaptRun(Run):
                                              anatomy=anatomy, name=self.scan.name)
         s.report_json = json.dumps(result.report(), default=float)
         s.result_root = root
+        apply_display(s, context)          # heat map on, scan as wire, helpers as the toggles say
         msg = (f"adapted: best level {result.best_level}, {outcome_text.verdict(result.outcome)}, "
                f"{time.perf_counter() - self.t0:.1f} s")
         turned = result.calibration_info.get("scan_pieces_turned", 0)

@@ -16,6 +16,7 @@ PANELS = (
     ("LANDMARKS", "Landmarks"),
     ("CALIBRATE", "Calibrate"),
     ("ADAPT", "Adapt"),
+    ("DISPLAY", "Display"),
     ("ANATOMY", "Anatomy"),
     ("EXPRESSIONS", "Expressions"),
     ("REPORT", "Report"),
@@ -97,6 +98,23 @@ def draw_adapt(layout, context):
         layout.label(text=f"Result: {s.result_root.name}", icon="CHECKMARK")
 
 
+def draw_display(layout, context):
+    s = _settings(context)
+    layout.prop(s, "show_heat_map")
+    if s.show_heat_map:          # the legend: the heat map's colours at their distances to the scan
+        row = layout.row(align=True)
+        for i in range(4):
+            col = row.column(align=True)
+            col.label(text=s.bl_rna.properties[f"legend_{i}"].name)
+            col.prop(s, f"legend_{i}", text="")
+        layout.label(text="distance to the scan; grey: no scan there")
+    layout.prop(s, "scan_as_wire")
+    row = layout.row(align=True)
+    row.prop(s, "show_fdps", toggle=True)
+    row.prop(s, "show_markers", toggle=True)
+    row.prop(s, "show_muscles", toggle=True)
+
+
 def draw_anatomy(layout, context):
     s = _settings(context)
     if s.result_root is None:
@@ -142,7 +160,7 @@ def draw_report(layout, context):
     for line in outcome_text.warning_lines(outcome, rep.get("flagged_fdps"), rep.get("dropped_fdps", ())):
         for i, part in enumerate(textwrap.wrap(line, 60)):     # the sidebar is narrow: wrap, do not cut
             layout.label(text=part, icon="ERROR" if i == 0 else "BLANK1")
-    layout.label(text="Heat map: colour attribute 'HeadAdapt distance' (Solid, Attribute)")
+    layout.label(text="Heat map and its legend: Display panel")
 
 
 def report_rows(rep):
@@ -160,7 +178,7 @@ def report_rows(rep):
 
 
 DRAW = {"TEMPLATE": draw_template, "SCAN": draw_scan, "LANDMARKS": draw_landmarks,
-        "CALIBRATE": draw_calibrate, "ADAPT": draw_adapt, "ANATOMY": draw_anatomy,
+        "CALIBRATE": draw_calibrate, "ADAPT": draw_adapt, "DISPLAY": draw_display, "ANATOMY": draw_anatomy,
         "EXPRESSIONS": draw_expressions, "REPORT": draw_report}
 
 

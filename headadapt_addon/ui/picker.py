@@ -53,7 +53,8 @@ def draw_landmarks_3d():
 
 
 def draw_labels_2d():
-    """Draw the FDP ids next to their points."""
+    """Draw the FDP ids next to their points: only where the view sees the point (not through the
+    head) and thinned so no two labels overlap (the active FDP and the 8 clicks first)."""
     import blf
     from bpy_extras.view3d_utils import location_3d_to_region_2d
 
@@ -61,11 +62,21 @@ def draw_labels_2d():
     s = getattr(context.scene, "headadapt", None)
     if s is None or s.scan is None or context.region_data is None:
         return
-    pts = landmarks.world_points(s.scan, landmarks.get_landmarks(s.scan))
+    local = landmarks.get_landmarks(s.scan)
+    pts = landmarks.world_points(s.scan, local)
+    screen = {}
     for k, p in pts.items():
         xy = location_3d_to_region_2d(context.region, context.region_data, p)
-        if xy is None:
-            continue
+        if xy is not None:
+            screen[k] = (xy[0], xy[1])
+    eye = np.array(context.region_data.view_matrix.inverted().translation)
+    if not context.region_data.is_perspective:      # orthographic: look from far along the view
+        centre = np.mean(list(pts.values()), axis=0) if pts else eye
+        back = np.array(context.region_data.view_matrix.inverted().to_3x3().col[2])
+        eye = centre + back * 10.0 * float(max(s.scan.dimensions))
+    seen = landmarks.seen_from(s.scan, {k: local[k] for k in screen}, eye)
+    for k in landmarks.thinned({k: xy for k, xy in screen.items() if seen[k]}, first=(s.active_fdp,)):
+        xy = screen[k]
         blf.size(0, 13 if k == s.active_fdp else 11)
         blf.color(0, *(_colours()["active"] if k == s.active_fdp else (1, 1, 1, 1)))
         blf.position(0, xy[0] + 6, xy[1] + 4, 0)

@@ -464,3 +464,90 @@ def test_markers_and_the_head_turn_follow_the_adapted_head(ui_scene, tmp_path):
         assert root.rotation_euler[0] == pytest.approx(pitch + 0.2, abs=1e-5)
         # the face turns: the nose tip moves by about its distance from the pivot times the angle
         assert (nose.matrix_world.translation - nose_rest).length > 0.1 * (nose_rest - rest).length
+
+
+@pytest.mark.slow
+def test_the_result_is_worth_looking_at_without_setup(ui_scene):
+    """After Adapt: the heat map shown (Solid shading by the skin's colour attribute) with a legend in
+    mm beside the head and in the Display panel, the scan as wire, the helpers hidden (no dashed
+    relationship lines either); each toggle does what it says."""
+    import bpy
+
+    from headadapt_addon.blender import landmarks, view
+    from headadapt_addon.ui import panels
+
+    with bpy.context.temp_override(**ui_scene):
+        s = bpy.context.scene.headadapt
+        space = ui_scene["area"].spaces.active
+        assert (space.shading.color_type, space.overlay.show_relationship_lines) == ("MATERIAL", True)
+        scan = _sample_scan()
+        landmarks.set_landmarks(scan, meshio.read_landmarks(SAMPLE_DIR / "landmarks.json"))
+        assert bpy.ops.headadapt.adapt(levels=0) == {"FINISHED"}
+        root = s.result_root
+        skin = next(o for o in root.children_recursive if o.get("headadapt_part") == "skin")
+        assert skin.data.color_attributes.active_color.name == view.HEAT_ATTRIBUTE
+        assert (space.shading.type, space.shading.color_type) == ("SOLID", "VERTEX")
+        assert not space.overlay.show_relationship_lines
+        assert scan.display_type == "WIRE"
+        # the legend beside the head: a colour bar blue (0 mm) at the bottom to red (3 mm) at the top
+        bar = next(o for o in root.children_recursive if o.get("headadapt_part") == "legend")
+        colours = np.array([c.color[:] for c in bar.data.color_attributes[view.HEAT_ATTRIBUTE].data])
+        z = np.array([v.co.z for v in bar.data.vertices])
+        assert colours[z.argmin()][2] > 0.9 > colours[z.argmin()][0]          # blue
+        assert colours[z.argmax()][0] > 0.9 > colours[z.argmax()][2]          # red
+        labels = sorted(o.data.body for o in root.children_recursive if o.get("headadapt_part") == "legend_label")
+        assert labels == ["0 mm", "1.5 mm", "3 mm+", "distance to scan"]
+        skin_x = max((skin.matrix_world @ v.co).x for v in skin.data.vertices)
+        assert min((bar.matrix_world @ v.co).x for v in bar.data.vertices) > skin_x - 1e-6   # beside, not on it
+        # the helpers hidden: 82 FDPs, the markers, 27 muscle curves
+        helpers = {k: [o for o in root.children_recursive if o.get("headadapt_part") in parts]
+                   for k, parts in view.HELPERS.items()}
+        assert len(helpers["fdps"]) == 83 and len(helpers["muscles"]) == 28
+        assert all(o.hide_get() and o.hide_render for group in helpers.values() for o in group)
+        # the Display panel: the toggles and the legend's values in mm
+        layout = _Layout()
+        panels.draw_display(layout, bpy.context)
+        assert ["0 mm", "1 mm", "1.5 mm", "3 mm+"] == [t for t, _i in layout.labels()][:4]
+        assert tuple(s.legend_0) == pytest.approx(view.heat_colours([0.0])[0, :3])
+        # toggles
+        s.show_fdps = True
+        assert all(not o.hide_get() for o in helpers["fdps"]) and all(o.hide_get() for o in helpers["muscles"])
+        s.show_muscles = True
+        assert all(not o.hide_get() for o in helpers["muscles"])
+        s.scan_as_wire = False
+        assert scan.display_type == "TEXTURED"
+        s.show_heat_map = False
+        assert space.shading.color_type == "MATERIAL"
+        s.show_heat_map = True
+        assert space.shading.color_type == "VERTEX"
+
+
+def test_fdp_labels_are_depth_tested_and_thinned(ui_scene):
+    """The picker's labels: a point round the back of the head is not labelled through it, and labels
+    closer than 14 px are thinned (the active FDP and the 8 clicks kept first)."""
+    import bpy
+
+    from headadapt_addon.blender import landmarks
+    from headadapt_addon.core import mpeg4
+
+    clicks = meshio.read_landmarks(SAMPLE_DIR / "landmarks.json")
+    with bpy.context.temp_override(**ui_scene):
+        scan = _sample_scan()
+        verts = np.array([v.co for v in scan.data.vertices])
+        centre = 0.5 * (verts.min(axis=0) + verts.max(axis=0))
+        size = float(np.ptp(verts, axis=0).max())
+        nose = clicks["9.3"]
+        ahead = (nose - centre) / np.linalg.norm(nose - centre)
+        pts = {"9.3": nose}
+        assert landmarks.seen_from(scan, pts, centre + 5 * size * ahead) == {"9.3": True}
+        assert landmarks.seen_from(scan, pts, centre - 5 * size * ahead) == {"9.3": False}     # from behind
+        # both eye corners seen from the front, neither from behind
+        eyes = {k: clicks[k] for k in ("3.7", "3.12")}
+        assert all(landmarks.seen_from(scan, eyes, centre + 5 * size * ahead).values())
+        assert not any(landmarks.seen_from(scan, eyes, centre - 5 * size * ahead).values())
+    # thinning: three labels on one spot keep one (the active first), a far one stays
+    spots = {"2.1": (100, 100), "9.3": (105, 103), "3.7": (300, 100), "8.3": (108, 98)}
+    assert landmarks.thinned(spots, first=("2.1",)) == ["2.1", "3.7"]
+    assert landmarks.thinned(spots) == ["3.7", "8.3"]      # the 8 clicks first, in their order: 8.3, not 2.1
+    assert set(mpeg4.CLICKS_8) >= {"3.7", "9.3"}
+    assert landmarks.thinned({k: (20.0 * i, 0.0) for i, k in enumerate(mpeg4.CLICKS_8)}) == list(mpeg4.CLICKS_8)

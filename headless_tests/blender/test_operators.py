@@ -208,15 +208,19 @@ def test_batch_writes_a_blend_that_reopens_with_the_report(tmp_path):
              "root = bpy.data.objects['HA Adapted head']; rep = json.loads(root['headadapt_report']);"
              "scan = bpy.data.objects['scan'];"
              "print('OK', len(rep['levels']), 'HeadAdapt report' in bpy.data.texts, 'headadapt_landmarks' in scan,"
-             " len([o for o in root.children_recursive if o.type == 'MESH']));"
+             " len([o for o in root.children_recursive if o.type == 'MESH']));"   # 8 parts, the heat legend
              "cam = bpy.context.scene.camera; print('VIEW', cam.name, cam.type,"
              " [o.type for o in bpy.data.objects if o.type == 'LIGHT']);"
              "skin = next(o for o in root.children_recursive if o.get('headadapt_part') == 'skin');"
              "kb = skin.data.shape_keys.key_blocks; print('KEYS', len(kb), 'joy' in kb, 'open_jaw' in kb,"
-             " 'viseme_A' in kb, rep['bake']['keys'], bpy.context.scene.frame_end)")
+             " 'viseme_A' in kb, rep['bake']['keys'], bpy.context.scene.frame_end);"
+             "views = [s for sc in bpy.data.screens for a in sc.areas for s in a.spaces if s.type == 'VIEW_3D'];"
+             "print('SHOW', len(views) > 0, all(v.shading.color_type == 'VERTEX' for v in views),"
+             " scan.display_type, all(o.hide_get() for o in root.children_recursive if 'headadapt_fdp' in o))")
     res = subprocess.run([sys.executable, "-c", check, str(out / "head.blend")], capture_output=True, text=True)
-    assert "OK 2 True True 8" in res.stdout, res.stdout + res.stderr
+    assert "OK 2 True True 9" in res.stdout, res.stdout + res.stderr
     assert "VIEW HeadAdapt camera CAMERA ['LIGHT']" in res.stdout, res.stdout       # renders without setup
+    assert "SHOW True True WIRE True" in res.stdout, res.stdout     # heat map on, scan as wire, FDPs hidden
     # shape keys: Basis + 6 expressions + 14 visemes + the skin FAPs; the preview action plays the six
     keys = res.stdout.split("KEYS")[1].split()
     assert int(keys[0]) > 1 + 6 + 14 + 40 and keys[1:4] == ["True", "True", "True"], res.stdout
