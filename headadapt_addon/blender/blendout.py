@@ -164,3 +164,97 @@ def write_blend(path, tpl, result, scan_verts, scan_tris, landmarks, report, bak
         pathlib.Path(tmp).unlink(missing_ok=True)
         pathlib.Path(tmp + "1").unlink(missing_ok=True)
     return path
+
+
+PREVIEW_VIEW_PX = 640           # each view of --preview is this many pixels square; front and side beside
+
+
+def _aim(cam, root, direction, distance=2.2):
+    """Point cam at the head's bounding box (the root's meshes, world) from `direction` (root frame)."""
+    import mathutils
+    pts = [o.matrix_world @ mathutils.Vector(c) for o in root.children_recursive if o.type == "MESH"
+           for c in o.bound_box]
+    lo = mathutils.Vector([min(p[i] for p in pts) for i in range(3)])
+    hi = mathutils.Vector([max(p[i] for p in pts) for i in range(3)])
+    centre, size = (lo + hi) / 2, max((hi - lo).length, 1e-6)
+    way = (root.matrix_world.to_3x3() @ mathutils.Vector(direction)).normalized()
+    up = (root.matrix_world.to_3x3() @ mathutils.Vector((0.0, 0.0, 1.0))).normalized()
+    cam.location = centre + way * distance * size
+    x = up.cross(way).normalized()                    # the camera looks down its -Z, its +Y up
+    cam.rotation_euler = mathutils.Matrix((x, way.cross(x), way)).transposed().to_euler()
+    cam.data.clip_start, cam.data.clip_end = size / 100, 10 * size
+    return cam
+
+
+def render_preview(path, root, scan_obj=None, px=PREVIEW_VIEW_PX):
+    """Render the head with its heat map from the front and from the side (Workbench, Solid shading by
+    the colour attribute) and write the two views side by side as one PNG (2 px x px), atomically.
+    The scan is left out of the picture (the heat map says how far it is)."""
+    path = pathlib.Path(path)
+    sc = bpy.context.scene
+    cams = []
+    for name, direction in (("front", (0.0, -1.0, 0.0)), ("side", (-1.0, 0.0, 0.0))):   # template: face at -Y
+        cam = bpy.data.objects.new(f"HeadAdapt preview {name}", bpy.data.cameras.new(f"HeadAdapt preview {name}"))
+        sc.collection.objects.link(cam)
+        cam.data.lens = 85.0
+        cams.append(_aim(cam, root, direction, distance=1.7))
+    bpy.context.view_layer.update()
+    before = (sc.camera, sc.render.engine, sc.render.resolution_x, sc.render.resolution_y,
+              sc.render.resolution_percentage, sc.render.filepath)
+    hidden = scan_obj.hide_render if scan_obj is not None else None
+    if sc.world is None:
+        sc.world = bpy.data.worlds.new("HeadAdapt preview")
+    sc.render.engine = "BLENDER_WORKBENCH"
+    sc.display.shading.light = "STUDIO"
+    sc.display.shading.color_type = "VERTEX"
+    sc.render.resolution_x = sc.render.resolution_y = px
+    sc.render.resolution_percentage = 100
+    sc.render.image_settings.file_format = "PNG"
+    sc.render.image_settings.color_mode = "RGBA"
+    if scan_obj is not None:
+        scan_obj.hide_render = True
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp_dir = tempfile.mkdtemp(prefix=f".{path.stem}.", dir=path.parent)
+    try:
+        views = []
+        for i, cam in enumerate(cams):
+            sc.camera = cam
+            sc.render.filepath = os.path.join(tmp_dir, f"view{i}.png")
+            bpy.ops.render.render(write_still=True)
+            img = bpy.data.images.load(sc.render.filepath)
+            pixels = np.empty(px * px * 4, dtype=np.float32)
+            img.pixels.foreach_get(pixels)
+            views.append(pixels.reshape(px, px, 4))
+            bpy.data.images.remove(img)
+        both = bpy.data.images.new("HeadAdapt preview", 2 * px, px, alpha=True)
+        both.pixels.foreach_set(np.concatenate(views, axis=1).ravel())
+        both.filepath_raw = os.path.join(tmp_dir, "both.png")
+        both.file_format = "PNG"
+        both.save()
+        bpy.data.images.remove(both)
+        os.chmod(os.path.join(tmp_dir, "both.png"), 0o644)
+        os.replace(os.path.join(tmp_dir, "both.png"), path)
+    except (RuntimeError, OSError) as exc:
+        raise FileFormatError(f"cannot write the preview {path}: {str(exc).strip()}") from None
+    finally:
+        for f in pathlib.Path(tmp_dir).glob("*"):
+            f.unlink(missing_ok=True)
+        os.rmdir(tmp_dir)
+        (sc.camera, sc.render.engine, sc.render.resolution_x, sc.render.resolution_y,
+         sc.render.resolution_percentage, sc.render.filepath) = before
+        if scan_obj is not None:
+            scan_obj.hide_render = hidden
+        for cam in cams:
+            data = cam.data
+            bpy.data.objects.remove(cam)
+            bpy.data.cameras.remove(data)
+    return path
+
+
+def write_preview(path, tpl, result, scan_verts, scan_tris, landmarks, report):
+    """The batch's --preview: a fresh scene with the scan and the adapted head (not baked), rendered
+    from the front and the side with the heat map into one PNG (render_preview)."""
+    bpy.ops.wm.read_homefile(use_empty=True, use_factory_startup=True)
+    root = build_result_scene(tpl, result, scan_verts, scan_tris, landmarks, report, bake=False)
+    scan_obj = next(o for o in bpy.context.scene.objects if "headadapt_landmarks" in o)
+    return render_preview(path, root, scan_obj)

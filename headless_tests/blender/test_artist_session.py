@@ -551,3 +551,35 @@ def test_fdp_labels_are_depth_tested_and_thinned(ui_scene):
     assert landmarks.thinned(spots) == ["3.7", "8.3"]      # the 8 clicks first, in their order: 8.3, not 2.1
     assert set(mpeg4.CLICKS_8) >= {"3.7", "9.3"}
     assert landmarks.thinned({k: (20.0 * i, 0.0) for i, k in enumerate(mpeg4.CLICKS_8)}) == list(mpeg4.CLICKS_8)
+
+
+@pytest.mark.slow
+def test_batch_preview_renders_front_and_side_with_the_heat_map(tmp_path):
+    """--preview out.png: one PNG, front and side beside each other (2 x 640 by 640), written atomically,
+    not blank: the heat map's blue and red are in it; a name that is not .png is refused (exit 2)."""
+    import struct
+    import subprocess
+    import sys
+
+    import bpy
+
+    png = tmp_path / "pics" / "preview.png"
+    cmd = [sys.executable, "-m", "headadapt_addon.batch", "adapt", "--scan", str(SAMPLE_DIR / "scan.ply"),
+           "--landmarks", str(SAMPLE_DIR / "landmarks.json"), "--out", str(tmp_path / "o"), "--levels", "1"]
+    proc = subprocess.run(cmd + ["--preview", str(png)], capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr
+    assert sorted(p.name for p in png.parent.iterdir()) == ["preview.png"]      # no temporary left behind
+    head = png.read_bytes()[:24]
+    assert head[:8] == b"\x89PNG\r\n\x1a\n" and struct.unpack(">II", head[16:24]) == (1280, 640)
+    img = bpy.data.images.load(str(png))
+    px = np.empty(1280 * 640 * 4, dtype=np.float32)
+    img.pixels.foreach_get(px)
+    bpy.data.images.remove(img)
+    rgb = px.reshape(640, 1280, 4)[..., :3]
+    blue = (rgb[..., 2] > 0.5) & (rgb[..., 0] < 0.25)
+    red = (rgb[..., 0] > 0.5) & (rgb[..., 2] < 0.25) & (rgb[..., 1] < 0.3)
+    for half in (slice(0, 640), slice(640, 1280)):            # the front view and the side view
+        assert blue[:, half].sum() > 500 and red[:, half].sum() > 100, (blue[:, half].sum(), red[:, half].sum())
+        assert rgb[:, half].std() > 0.05
+    bad = subprocess.run(cmd + ["--overwrite", "--preview", str(tmp_path / "p.jpg")], capture_output=True, text=True)
+    assert bad.returncode == 2 and bad.stderr.strip().count("\n") == 0 and "name a .png file" in bad.stderr
