@@ -12,6 +12,8 @@ from ..core import mpeg4
 
 PROP = "headadapt_landmarks"
 SUGGESTED_PROP = "headadapt_suggested"
+# the order the picker walks: the 8 clicks calibration and Suggest the Rest start from, then the rest
+GUIDED_ORDER = mpeg4.CLICKS_8 + tuple(k for k in mpeg4.FDPS if k not in mpeg4.CLICKS_8)
 
 
 def get_landmarks(obj, prop=PROP):

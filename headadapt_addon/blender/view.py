@@ -60,6 +60,7 @@ def show_heat_map(screens, on=True):
         space.shading.type = "SOLID"
         space.shading.color_type = "VERTEX" if on else "MATERIAL"
         space.overlay.show_relationship_lines = False
+        space.overlay.wireframe_opacity = 0.35         # a scan drawn as wire veils the heat map lightly
 
 
 def heat_map_shown(screens):
@@ -77,7 +78,8 @@ def add_heat_legend(root, tpl, collection):
     frame: the template's, so it scales and turns with the head); parented to root."""
     skin = tpl.skin.verts
     lo, hi = skin.min(axis=0), skin.max(axis=0)
-    x0, width = hi[0] + 0.03, 0.012
+    width = 0.012
+    x0 = lo[0] - 0.03 - width               # the viewer's left of the face (the sidebar is on the right)
     z0, z1 = lo[2] + 0.06, hi[2] - 0.04
     y = lo[1] + 0.5 * (hi[1] - lo[1])
     steps = 24
@@ -88,13 +90,13 @@ def add_heat_legend(root, tpl, collection):
     bar = bpy.data.objects.new("HeadAdapt heat legend", bridge.new_mesh("HeadAdapt heat legend", verts, quads))
     bridge.set_point_colors(bar.data, HEAT_ATTRIBUTE, heat_colours(np.repeat(mm, 2)))
     objs = [(bar, "legend")]
-    labels = [(f"{v:g} mm" + ("+" if v >= HEAT_LIMIT_MM else ""), z0 + (z1 - z0) * v / HEAT_LIMIT_MM)
-              for v in LEGEND_MM] + [("distance to scan", z1 + 0.015)]
-    for text, zz in labels:
+    labels = [(f"{v:g} mm" + ("+" if v >= HEAT_LIMIT_MM else ""), x0 - 0.004, z0 + (z1 - z0) * v / HEAT_LIMIT_MM,
+               "RIGHT") for v in LEGEND_MM] + [("distance to scan", x0 + width / 2, z1 + 0.015, "CENTER")]
+    for text, x, zz, align in labels:
         curve = bpy.data.curves.new(f"HeadAdapt legend {text}", "FONT")
-        curve.body, curve.size, curve.align_y = text, 0.008, "CENTER"
+        curve.body, curve.size, curve.align_x, curve.align_y = text, 0.009, align, "CENTER"
         label = bpy.data.objects.new(curve.name, curve)
-        label.location = (x0 + (width + 0.004 if "mm" in text else 0.0), y, zz)
+        label.location = (x, y, zz)
         label.rotation_euler = (np.pi / 2, 0.0, 0.0)        # in the XZ plane, read from the front (-Y)
         objs.append((label, "legend_label"))
     for obj, part in objs:

@@ -241,26 +241,99 @@ class HEADADAPT_OT_suggest_landmarks(_Base, bpy.types.Operator):
         return {"FINISHED"}
 
 
+def _suggestions_problem(context, fdp=""):
+    scan = settings(context).scan
+    sug = landmarks.get_landmarks(scan, landmarks.SUGGESTED_PROP) if scan is not None else {}
+    if not sug:
+        return "no suggestions yet: press Suggest the Rest first"
+    if fdp and fdp not in sug:
+        return f"FDP {fdp} is not among the suggestions"
+    return None
+
+
+def _take_suggestions(scan, names):
+    """Remove the named suggestions from the scan; returns {name: point} of those removed."""
+    sug = landmarks.get_landmarks(scan, landmarks.SUGGESTED_PROP)
+    taken = {k: sug.pop(k) for k in names if k in sug}
+    if sug:
+        landmarks.set_landmarks(scan, sug, prop=landmarks.SUGGESTED_PROP)
+    elif landmarks.SUGGESTED_PROP in scan:
+        del scan[landmarks.SUGGESTED_PROP]
+    return taken
+
+
 class HEADADAPT_OT_accept_suggestions(_Base, bpy.types.Operator):
-    """Accept the suggested FDPs as landmarks"""
+    """Accept suggested FDPs as landmarks: one (fdp), or all of them"""
     bl_idname = "headadapt.accept_suggestions"
     bl_label = "Accept Suggestions"
+    fdp: bpy.props.StringProperty(name="FDP", default="", description="The suggestion to accept (empty: all)")
 
     @classmethod
     def poll(cls, context):
-        scan = settings(context).scan
-        if scan is None or not landmarks.get_landmarks(scan, landmarks.SUGGESTED_PROP):
-            return poll_with_message(cls, "no suggestions yet: press Suggest the Rest first")
-        return True
+        return poll_with_message(cls, _suggestions_problem(context))
 
     def execute(self, context):
+        problem = _suggestions_problem(context, self.fdp)
+        if problem:
+            return self.fail(problem)
         scan = settings(context).scan
+        names = [self.fdp] if self.fdp else list(landmarks.get_landmarks(scan, landmarks.SUGGESTED_PROP))
         pts = landmarks.get_landmarks(scan)
-        sug = landmarks.get_landmarks(scan, landmarks.SUGGESTED_PROP)
-        pts.update({k: v for k, v in sug.items() if k not in pts})
+        taken = _take_suggestions(scan, names)
+        pts.update({k: v for k, v in taken.items() if k not in pts})
         landmarks.set_landmarks(scan, pts)
-        del scan[landmarks.SUGGESTED_PROP]
-        self.report({"INFO"}, f"{len(pts)} FDPs placed")
+        self.report({"INFO"}, f"accepted {', '.join(taken) if self.fdp else f'{len(taken)} suggestions'}: "
+                              f"{len(pts)} FDPs placed")
+        return {"FINISHED"}
+
+
+class HEADADAPT_OT_reject_suggestions(_Base, bpy.types.Operator):
+    """Reject suggested FDPs: one (fdp), or all of them; placed landmarks are not touched"""
+    bl_idname = "headadapt.reject_suggestions"
+    bl_label = "Reject Suggestions"
+    fdp: bpy.props.StringProperty(name="FDP", default="", description="The suggestion to reject (empty: all)")
+
+    @classmethod
+    def poll(cls, context):
+        return poll_with_message(cls, _suggestions_problem(context))
+
+    def execute(self, context):
+        problem = _suggestions_problem(context, self.fdp)
+        if problem:
+            return self.fail(problem)
+        scan = settings(context).scan
+        names = [self.fdp] if self.fdp else list(landmarks.get_landmarks(scan, landmarks.SUGGESTED_PROP))
+        taken = _take_suggestions(scan, names)
+        self.report({"INFO"}, f"rejected {', '.join(taken) if self.fdp else f'{len(taken)} suggestions'}")
+        return {"FINISHED"}
+
+
+class HEADADAPT_OT_load_sample_scan(_Base, bpy.types.Operator):
+    """Load the sample scan shipped with HeadAdapt (a synthetic head, mm) as the scan, to try the workflow"""
+    bl_idname = "headadapt.load_sample_scan"
+    bl_label = "Load Sample Scan"
+    with_landmarks: bpy.props.BoolProperty(name="With its landmarks", default=False,
+                                           description="Also set the sample's landmark file (all FDPs)")
+
+    def execute(self, context):
+        from ..batch import SAMPLE_DIR
+        from ..core import meshio
+        try:
+            verts, tris = meshio.read_mesh(SAMPLE_DIR / "scan.ply")
+            pts = meshio.read_landmarks(SAMPLE_DIR / "landmarks.json") if self.with_landmarks else {}
+        except (HeadAdaptError, OSError) as exc:
+            return self.fail(f"the sample scan cannot be read: {exc}")
+        obj = bpy.data.objects.new("sample scan", bridge.new_mesh("sample scan", verts, tris))
+        context.scene.collection.objects.link(obj)
+        if pts:
+            landmarks.set_landmarks(obj, pts)
+        settings(context).scan = obj
+        for other in context.view_layer.objects.selected:
+            other.select_set(False)
+        obj.select_set(True)
+        context.view_layer.objects.active = obj
+        self.report({"INFO"}, f"sample scan: {len(verts):,} vertices, {len(pts)} landmarks; "
+                              + ("Calibrate and Adapt" if pts else f"click {', '.join(mpeg4.CLICKS_8)}"))
         return {"FINISHED"}
 
 
@@ -518,7 +591,8 @@ class HEADADAPT_OT_import_fap(_Base, ImportHelper, bpy.types.Operator):
 
 classes = (HEADADAPT_OT_add_template, HEADADAPT_OT_use_active_as_scan, HEADADAPT_OT_import_landmarks,
            HEADADAPT_OT_export_landmarks, HEADADAPT_OT_clear_landmark, HEADADAPT_OT_suggest_landmarks,
-           HEADADAPT_OT_accept_suggestions, HEADADAPT_OT_calibrate, HEADADAPT_OT_adapt,
+           HEADADAPT_OT_accept_suggestions, HEADADAPT_OT_reject_suggestions, HEADADAPT_OT_load_sample_scan,
+           HEADADAPT_OT_calibrate, HEADADAPT_OT_adapt,
            HEADADAPT_OT_bake_expressions, HEADADAPT_OT_import_fap)
 
 

@@ -27,6 +27,15 @@ def _settings(context):
     return context.scene.headadapt
 
 
+def _wrap(context):
+    """Characters per line that fit the sidebar (its width in pixels less an icon), for
+    textwrap: messages wrap instead of being cut off in a narrow sidebar (about 8 px a character)."""
+    region = getattr(context, "region", None)
+    if region is None or region.type != "UI" or region.width < 50:
+        return 60
+    return max(24, int(region.width / (8.0 * context.preferences.view.ui_scale)) - 6)
+
+
 def draw_template(layout, context):
     s = _settings(context)
     if s.template_root is not None and s.template_root.name in context.scene.objects:
@@ -44,6 +53,7 @@ def draw_scan(layout, context):
     else:
         layout.label(text=f"{len(s.scan.data.vertices):,} vertices, {len(s.scan.data.polygons):,} faces")
     layout.operator("headadapt.use_active_as_scan", icon="EYEDROPPER")
+    layout.operator("headadapt.load_sample_scan", icon="USER")
 
 
 def draw_landmarks(layout, context):
@@ -57,23 +67,50 @@ def draw_landmarks(layout, context):
     if problem is None and s.scan is not None:
         col.label(text="Enough to calibrate and adapt", icon="CHECKMARK")
     elif problem:
-        for i, part in enumerate(textwrap.wrap(problem[:1].upper() + problem[1:], 60)):
+        for i, part in enumerate(textwrap.wrap(problem[:1].upper() + problem[1:], _wrap(context))):
             col.label(text=part, icon="ERROR" if i == 0 else "BLANK1")
     col.prop(s, "active_fdp")
     col.label(text=mpeg4.FDPS[s.active_fdp].label)
     col.operator("headadapt.pick_landmarks", icon="RESTRICT_SELECT_OFF")
     row = col.row(align=True)
-    row.operator("headadapt.suggest_landmarks", icon="LIGHT")
-    row.operator("headadapt.accept_suggestions", text="Accept")
-    row = col.row(align=True)
     row.operator("headadapt.import_landmarks", icon="IMPORT")
     row.operator("headadapt.export_landmarks", icon="EXPORT")
+    # the 8 clicks first: what calibration and Suggest the Rest start from
     box = col.box().column(align=True)
-    for name in mpeg4.CLICKS_8 + tuple(k for k in pts if k not in mpeg4.CLICKS_8):
+    box.label(text=f"The 8 clicks: {sum(k in pts for k in mpeg4.CLICKS_8)} of 8")
+    for name in mpeg4.CLICKS_8:
+        _fdp_row(box, name, pts, s)
+    row = col.row(align=True)
+    row.operator("headadapt.suggest_landmarks", icon="LIGHT")
+    suggested = landmarks.get_landmarks(s.scan, landmarks.SUGGESTED_PROP) if s.scan is not None else {}
+    if suggested:      # each suggestion accepted or rejected on its own, or all at once
+        box = col.box().column(align=True)
         row = box.row(align=True)
-        row.label(text=f"{name}  {mpeg4.FDPS[name].label}", icon="CHECKMARK" if name in pts else "BLANK1")
-        if name in pts:
-            row.operator("headadapt.clear_landmark", text="", icon="X").fdp = name
+        row.label(text=f"{len(suggested)} suggested")
+        row.operator("headadapt.accept_suggestions", text="All", icon="CHECKMARK").fdp = ""
+        row.operator("headadapt.reject_suggestions", text="None", icon="X").fdp = ""
+        for name in suggested:
+            row = box.row(align=True)
+            row.label(text=f"{name}  {mpeg4.FDPS[name].label}", icon="LIGHT")
+            row.operator("headadapt.accept_suggestions", text="", icon="CHECKMARK").fdp = name
+            row.operator("headadapt.reject_suggestions", text="", icon="X").fdp = name
+    # the rest folded away
+    others = [k for k in mpeg4.FDPS if k not in mpeg4.CLICKS_8]
+    row = col.row()
+    row.prop(s, "show_all_fdps", emboss=False, icon="DISCLOSURE_TRI_DOWN" if s.show_all_fdps else "DISCLOSURE_TRI_RIGHT",
+             text=f"Other FDPs (optional): {sum(k in pts for k in others)} of {len(others)} placed")
+    if s.show_all_fdps:
+        box = col.box().column(align=True)
+        for name in others:
+            _fdp_row(box, name, pts, s)
+
+
+def _fdp_row(layout, name, pts, s):
+    row = layout.row(align=True)
+    mark = "CHECKMARK" if name in pts else ("RADIOBUT_ON" if name == s.active_fdp else "BLANK1")
+    row.label(text=f"{name}  {mpeg4.FDPS[name].label}", icon=mark)
+    if name in pts:
+        row.operator("headadapt.clear_landmark", text="", icon="X").fdp = name
 
 
 def draw_calibrate(layout, context):
@@ -107,7 +144,8 @@ def draw_display(layout, context):
             col = row.column(align=True)
             col.label(text=s.bl_rna.properties[f"legend_{i}"].name)
             col.prop(s, f"legend_{i}", text="")
-        layout.label(text="distance to the scan; grey: no scan there")
+        layout.label(text="distance to the scan")
+        layout.label(text="grey: no scan there")
     layout.prop(s, "scan_as_wire")
     row = layout.row(align=True)
     row.prop(s, "show_fdps", toggle=True)
@@ -120,7 +158,7 @@ def draw_anatomy(layout, context):
     if s.result_root is None:
         layout.label(text="Adapt first: the anatomy follows the adaptation", icon="INFO")
     else:
-        layout.label(text="Skull, muscles, eyes, teeth and tongue follow the result", icon="CHECKMARK")
+        layout.label(text="The anatomy follows the result", icon="CHECKMARK")
 
 
 def draw_expressions(layout, context):
@@ -158,7 +196,7 @@ def draw_report(layout, context):
         for line in outcome_text.measures(outcome):
             layout.label(text=line)
     for line in outcome_text.warning_lines(outcome, rep.get("flagged_fdps"), rep.get("dropped_fdps", ())):
-        for i, part in enumerate(textwrap.wrap(line, 60)):     # the sidebar is narrow: wrap, do not cut
+        for i, part in enumerate(textwrap.wrap(line, _wrap(context))):   # the sidebar is narrow: wrap, do not cut
             layout.label(text=part, icon="ERROR" if i == 0 else "BLANK1")
     layout.label(text="Heat map and its legend: Display panel")
 

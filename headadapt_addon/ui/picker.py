@@ -39,7 +39,10 @@ def draw_landmarks_3d():
         for o in s.template_root.children_recursive:
             if o.get("headadapt_fdp") == s.active_fdp:
                 groups["template"].append(np.array(o.matrix_world.translation))
-    shader = gpu.shader.from_builtin("POINT_UNIFORM_COLOR")
+    try:
+        shader = gpu.shader.from_builtin("POINT_UNIFORM_COLOR")
+    except ValueError:                   # Blender before 4.0 (Debian's 3.4): points from the plain shader
+        shader = gpu.shader.from_builtin("UNIFORM_COLOR")
     gpu.state.point_size_set(9.0)
     gpu.state.depth_test_set("LESS_EQUAL")
     for name, ps in groups.items():
@@ -165,7 +168,7 @@ class HEADADAPT_OT_pick_landmarks(bpy.types.Operator):
                     sug = landmarks.get_landmarks(s.scan, landmarks.SUGGESTED_PROP)
                     if sug.pop(s.active_fdp, None) is not None:      # a moved suggestion is accepted
                         landmarks.set_landmarks(s.scan, sug, prop=landmarks.SUGGESTED_PROP)
-                    nxt = landmarks.next_missing(pts, after=s.active_fdp)
+                    nxt = landmarks.next_missing(pts, order=landmarks.GUIDED_ORDER, after=s.active_fdp)
                     if nxt:
                         s.active_fdp = nxt
             context.area.tag_redraw()

@@ -45,7 +45,7 @@ class HeadAdaptSettings(bpy.types.PropertyGroup):
     template_root: bpy.props.PointerProperty(name="Template", type=bpy.types.Object)
     result_root: bpy.props.PointerProperty(name="Result", type=bpy.types.Object)
     active_fdp: bpy.props.EnumProperty(
-        name="FDP", items=[(k, k, f.label) for k, f in mpeg4.FDPS.items()], default="2.1",
+        name="FDP", items=[(k, k, f.label) for k, f in mpeg4.FDPS.items()], default=mpeg4.CLICKS_8[0],
         description="The FDP the next click places")
     max_levels: bpy.props.IntProperty(name="Levels", default=AdaptOptions.max_levels, min=0, max=8,
                                       description="Maximum number of refinement levels after level 0")
@@ -61,6 +61,9 @@ class HeadAdaptSettings(bpy.types.PropertyGroup):
     keep_results: bpy.props.BoolProperty(name="Keep earlier results", default=False,
                                          description="Adapt adds a new result beside the earlier ones "
                                                      "instead of replacing the last")
+    show_all_fdps: bpy.props.BoolProperty(name="Other FDPs", default=False,
+                                          description="Unfold the FDPs beyond the 8 clicks (optional: "
+                                                      "Suggest the Rest proposes them)")
     show_heat_map: bpy.props.BoolProperty(name="Heat map", default=True, update=_update,
                                           description="Colour the result's skin by its distance to the scan "
                                                       "(Solid shading by the colour attribute)")
