@@ -21,8 +21,10 @@ def heads(s):
 
 
 def apply_display(s, context):
-    """Make the scene look as the Display toggles say: heat map, scan as wire, helpers."""
-    view.show_heat_map(screens(context), s.show_heat_map)
+    """Make the scene look as the Display toggles say: heat map (once there is a result: the
+    template has none, and would lose its colours), scan as wire, helpers."""
+    if s.result_root is not None:
+        view.show_heat_map(screens(context), s.show_heat_map)
     if s.scan is not None:
         view.show_scan_as_wire(s.scan, s.scan_as_wire and s.result_root is not None)
     for root in heads(s):

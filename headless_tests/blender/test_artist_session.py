@@ -480,6 +480,10 @@ def test_the_result_is_worth_looking_at_without_setup(ui_scene):
         s = bpy.context.scene.headadapt
         space = ui_scene["area"].spaces.active
         assert (space.shading.color_type, space.overlay.show_relationship_lines) == ("MATERIAL", True)
+        # the template alone: its colours kept (no heat map to show), its helpers hidden
+        assert bpy.ops.headadapt.add_template() == {"FINISHED"}
+        assert space.shading.color_type == "MATERIAL"
+        assert all(o.hide_get() for o in s.template_root.children_recursive if "headadapt_fdp" in o)
         scan = _sample_scan()
         landmarks.set_landmarks(scan, meshio.read_landmarks(SAMPLE_DIR / "landmarks.json"))
         assert bpy.ops.headadapt.adapt(levels=0) == {"FINISHED"}
