@@ -109,6 +109,9 @@ with bpy.context.temp_override(window=win, screen=win.screen, area=area):
     steps["calibrate"] = bpy.ops.headadapt.calibrate()
     steps["adapt"] = bpy.ops.headadapt.adapt()
     steps["bake_expressions"] = bpy.ops.headadapt.bake_expressions(sets={"expression"})
+    steps["load_sample_scan"] = bpy.ops.headadapt.load_sample_scan()       # the shipped scan, from the zip
+    sample_scan = [bpy.context.scene.headadapt.scan.name, len(bpy.context.scene.headadapt.scan.data.vertices)]
+    bpy.context.scene.headadapt.scan = scan
     steps["save"] = bpy.ops.wm.save_as_mainfile(filepath=blend)
 scipy_files = sorted({m.__file__ for name, m in list(sys.modules.items())
                       if (name == "scipy" or name.startswith("scipy.")) and getattr(m, "__file__", None)})
@@ -128,6 +131,7 @@ print(RESULT_MARK + json.dumps({
     "site_before_interpreter": [p for p in sys.path if p.endswith("site-packages")][:1] == [site],
     "site_dist_info": sorted(n for n in installed if n.endswith(".dist-info")),
     "scan_counts": scan_counts,
+    "sample_scan": sample_scan,
     "reader_files": [plyfile.__file__, trimesh.__file__],
     "scipy_file": scipy.__file__,
     "scipy_version": scipy.__version__,
@@ -262,7 +266,7 @@ def test_linux_zip_installs_registers_and_runs_the_workflow_in_a_clean_user_conf
     assert str(user_dir) in installed["repo_dir"]
     assert "HEADADAPT_PT_template" in installed["panels"], installed["panels"]
     expected = _expected_operators()
-    assert len(expected) == 12 and sorted(installed["operators"]) == expected, installed["operators"]
+    assert len(expected) == 14 and sorted(installed["operators"]) == expected, installed["operators"]
     # each one is the installed copy's class, not the source tree's
     assert all(module.startswith(EXT_MODULE + ".") for module in installed["operators"].values()), installed["operators"]
 
@@ -284,7 +288,8 @@ def test_linux_zip_installs_registers_and_runs_the_workflow_in_a_clean_user_conf
 
     assert restarted["steps"] == {step: ["FINISHED"] for step in (
         "read_userpref", "add_template", "ply_import", "use_active_as_scan", "import_landmarks", "calibrate", "adapt",
-        "bake_expressions", "save", "open")}, log
+        "bake_expressions", "load_sample_scan", "save", "open")}, log
+    assert restarted["sample_scan"] == ["sample scan", 32918]
     assert restarted["result_root"] == "scan adapted"          # named after the scan object
     assert {"Basis", "joy", "surprise"} <= set(restarted["skin_keys"]) and "viseme_A" not in restarted["skin_keys"]
     assert restarted["levels"] > 1 and restarted["best_rms_mm"] < 1.0 and restarted["outcome_ok"], restarted
