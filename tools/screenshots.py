@@ -1,5 +1,5 @@
-"""The README's screenshots, taken from a real Blender window (not rendered): docs/img/panels.png and
-docs/img/heat_map.png.
+"""The README's screenshots, taken from a real Blender window (not rendered): docs/img/landmarks.png,
+docs/img/panels.png and docs/img/heat_map.png.
 
     blender -b --factory-startup --python-expr "import bpy; bpy.ops.wm.save_as_mainfile(filepath='/tmp/start.blend')"
     xvfb-run -a -s "-screen 0 1600x1000x24" blender --factory-startup --enable-event-simulate /tmp/start.blend \
@@ -9,7 +9,8 @@ docs/img/heat_map.png.
 clicked as a user clicks it)
 
 The extension is registered by hand (its folder on sys.path, register()), as a user who installed it
-would have it; the steps are the walkthrough's: Load Sample Scan, the 8 clicks, Suggest the Rest,
+would have it; the steps are the walkthrough's: Load Sample Scan, the 8 clicks (from the sample's
+landmark file: a script cannot aim a hand), Suggest the Rest,
 Calibrate, Adapt. Blender's own screenshot operator writes the pictures, from timers, once the window
 has drawn what each step changed. PLYFILE_TRIMESH names a folder with plyfile and trimesh where
 Blender's Python has none (Debian's); the extension's zip bundles them.
@@ -59,18 +60,36 @@ def setup():
     with bpy.context.temp_override(**_override()):
         bpy.ops.headadapt.load_sample_scan()
         s = bpy.context.scene.headadapt
-        clicks = meshio.read_landmarks(SAMPLE_DIR / "landmarks.json")
-        from headadapt_addon.blender import landmarks
-        landmarks.set_landmarks(s.scan, {k: clicks[k] for k in mpeg4.CLICKS_8})    # the 8 clicks
-        bpy.ops.headadapt.suggest_landmarks()
-        bpy.ops.headadapt.calibrate()
         _front(s.scan)
-        import json
-
+        # the face's direction from the sample's own landmark file (the scene is not touched)
         import numpy as np
-        m = np.array(json.loads(s.scan["headadapt_calibration"])["matrix"])[:3, :3]       # scan -> template
+
+        from headadapt_addon.core.adapt import calibration
+        from headadapt_addon.ui.operators import visible_template_fdps
+        clicks = meshio.read_landmarks(SAMPLE_DIR / "landmarks.json")
+        sim, _info = calibration.calibrate(clicks, visible_template_fdps())
+        m = np.array(sim.matrix4())[:3, :3]                                          # scan -> template
         face_view(np.linalg.inv(m / np.cbrt(np.linalg.det(m))))
         bpy.ops.view3d.view_selected()
+    return 1.0
+
+
+def redraw():
+    """Give the window time to draw (the reference picture's preview loads after the first draw)."""
+    for area in _window()[0].screen.areas:
+        area.tag_redraw()
+    return 2.0
+
+
+def clicks8():
+    """The 8 clicks placed (here from the sample's landmark file), Suggest the Rest, Calibrate."""
+    with bpy.context.temp_override(**_override()):
+        s = bpy.context.scene.headadapt
+        clicks = meshio.read_landmarks(SAMPLE_DIR / "landmarks.json")
+        from headadapt_addon.blender import landmarks
+        landmarks.set_landmarks(s.scan, {k: clicks[k] for k in mpeg4.CLICKS_8})
+        bpy.ops.headadapt.suggest_landmarks()
+        bpy.ops.headadapt.calibrate()
     return 1.0
 
 
@@ -143,7 +162,7 @@ def scroll_sidebar():
     return 1.0
 
 
-STEPS = [setup, tab, shot("panels.png"), adapt, scroll_sidebar, shot("heat_map.png")]
+STEPS = [setup, tab, redraw, redraw, shot("landmarks.png"), clicks8, shot("panels.png"), adapt, scroll_sidebar, shot("heat_map.png")]
 
 
 def run():

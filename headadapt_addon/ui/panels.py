@@ -1,6 +1,7 @@
 """Sidebar tab "HeadAdapt" in the 3D viewport: panels in the order of the work, each showing state."""
 
 import json
+import pathlib
 import textwrap
 
 import bpy
@@ -75,9 +76,12 @@ def draw_landmarks(layout, context):
     row = col.row(align=True)
     row.operator("headadapt.import_landmarks", icon="IMPORT")
     row.operator("headadapt.export_landmarks", icon="EXPORT")
-    # the 8 clicks first: what calibration and Suggest the Rest start from
+    # the 8 clicks first: what calibration and Suggest the Rest start from, with a picture of where
     box = col.box().column(align=True)
     box.label(text=f"The 8 clicks: {sum(k in pts for k in mpeg4.CLICKS_8)} of 8")
+    picture = reference_preview()
+    if picture is not None and sum(k in pts for k in mpeg4.CLICKS_8) < 8:
+        box.template_icon(icon_value=picture.icon_id, scale=7.0)
     for name in mpeg4.CLICKS_8:
         _fdp_row(box, name, pts, s)
     row = col.row(align=True)
@@ -240,4 +244,30 @@ def _make_panel(key, label, order):
 classes = tuple(_make_panel(key, label, i) for i, (key, label) in enumerate(PANELS))
 
 
-register, unregister = bpy.utils.register_classes_factory(classes)
+_register_classes, _unregister_classes = bpy.utils.register_classes_factory(classes)
+REFERENCE = pathlib.Path(__file__).resolve().parents[2] / "assets" / "reference" / "clicks8.png"
+_previews = {}
+
+
+def reference_preview():
+    """The 8 clicks' reference picture (tools/render_reference.py) as a preview, None if it is missing."""
+    coll = _previews.get("coll")
+    if coll is None or not REFERENCE.is_file():
+        return None
+    if "clicks8" not in coll:
+        coll.load("clicks8", str(REFERENCE), "IMAGE")
+    return coll["clicks8"]
+
+
+def register():
+    import bpy.utils.previews
+    _previews["coll"] = bpy.utils.previews.new()
+    _register_classes()
+
+
+def unregister():
+    _unregister_classes()
+    coll = _previews.pop("coll", None)
+    if coll is not None:
+        import bpy.utils.previews
+        bpy.utils.previews.remove(coll)

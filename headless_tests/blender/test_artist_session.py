@@ -196,6 +196,9 @@ class _Layout:
     def prop(self, *_a, **_kw):
         pass
 
+    def template_icon(self, icon_value=0, **_kw):
+        self.children.append(("icon", f"icon {icon_value}", icon_value))
+
     def rows(self):
         """[[label text, ...] per row] anywhere under this layout, in drawing order."""
         out = []
@@ -675,6 +678,11 @@ def test_landmarking_guides_the_8_clicks_first_and_suggestions_one_by_one(ui_sce
         assert "The 8 clicks: 0 of 8" in texts
         assert all(any(t.startswith(f"{k}  ") for t in texts) for k in mpeg4.CLICKS_8)
         assert not any(t.startswith("2.1  ") for t in texts)                 # the rest folded away
+        # a picture of where the 8 clicks go, until they are placed
+        icons = [i for t, i in layout.labels() if t.startswith("icon ")]
+        picture = panels.reference_preview()
+        w, h = picture.image_size                          # the 360x400 picture, as a 256 px preview
+        assert h == 256 and abs(w / h - 360 / 400) < 0.01 and icons == [picture.icon_id]     # 0 without a GPU
         s.show_all_fdps = True
         layout = _Layout()
         panels.draw_landmarks(layout, bpy.context)
@@ -686,6 +694,7 @@ def test_landmarking_guides_the_8_clicks_first_and_suggestions_one_by_one(ui_sce
         layout = _Layout()
         panels.draw_landmarks(layout, bpy.context)
         assert (f"{len(sug)} suggested", None) in layout.labels()
+        assert not [t for t, _i in layout.labels() if t.startswith("icon ")]      # the 8 placed: no picture
         assert bpy.ops.headadapt.accept_suggestions(fdp="2.1") == {"FINISHED"}
         assert bpy.ops.headadapt.reject_suggestions(fdp="11.1") == {"FINISHED"}
         pts = landmarks.get_landmarks(scan)
