@@ -2,6 +2,7 @@
 
     ./ha bench adapt [--seeds 100-107] [--clicks 8,11] [--no-nricp] [--big] [--style legacy]
     ./ha bench adapt --real            # the real scans in ../shared/scans, clicks in headless_tests/data
+    ./ha bench adapt --oracle          # what a perfect global map would reach (the floor), no method run
 
 Seeds 100-107 are the REPORTING set (the default): figures quoted anywhere come from them. Seeds
 0-49 may be used for tuning (parameters, thresholds, ideas); never tune on 100-107, or the figures
@@ -226,6 +227,43 @@ def real(args):
             f"{c:^14s}" for c in cells), flush=True)
 
 
+def oracle(args):
+    """The floor of any fit from a smooth map plus the scan's surface: maps that know the truth.
+    affine  the best affine map of the template onto its true positions (least squares over the seen
+            face), each vertex then moved to its closest point on the scan
+    tps     a thin-plate RBF through every skin FDP at its exact true position (50-72 points, against
+            the 8-11 clicks a person gives), then the closest point on the scan
+    What is left is tangential: where on a featureless cheek or forehead a vertex belongs, which the
+    surface cannot say. Printed beside HeadAdapt's figure from 11 clicks."""
+    from scipy.interpolate import RBFInterpolator
+
+    tpl = load_template()
+    face = testheads.face_mask(tpl)
+    fdps = tpl.fdp_points()
+    print("\n== the floor: maps that know the truth, projected onto the scan; corr RMS, mm of the true head ==")
+    print(f"{'seed':>4s} {'affine':>7s} {'tps':>7s} {'fdps':>4s} {'headadapt(11)':>14s}")
+    rows = []
+    for seed in args.seeds:
+        head = testheads.make_head(seed, style=args.style)
+        seen = face & head.true_on_scan
+        query = spatial.MeshQuery(head.scan_verts, head.scan_tris, backend=testheads.BACKEND)
+        V, T = tpl.skin.verts, head.true_template
+        X = np.c_[V, np.ones(len(V))]
+        A = np.linalg.lstsq(X[seen], T[seen], rcond=None)[0]
+        affine = query.closest_points(X @ A)[0]
+        skin = [k for k in head.true_fdps if tpl.meta["fdps"][k]["part"] == "skin"]
+        f = RBFInterpolator(np.array([fdps[k] for k in skin]), np.array([head.true_fdps[k] for k in skin])
+                            - np.array([fdps[k] for k in skin]) @ A[:3] - A[3], kernel="thin_plate_spline")
+        tps = query.closest_points(X @ A + f(V))[0]
+        clicks = {k: head.fdp_clicks[k] for k in mpeg4.CLICKS_11 if k in head.fdp_clicks}
+        res = adapt.adapt(tpl, head.scan_verts, head.scan_tris, clicks, markers=head.markers)
+        r = [measure(tpl, head, v, seen, query)["corr_rms"] for v in (affine, tps, res.verts_scan)]
+        rows.append(r)
+        print(f"{seed:4d} {r[0]:7.2f} {r[1]:7.2f} {len(skin):4d} {r[2]:14.2f}", flush=True)
+    med = np.median(rows, axis=0)
+    print(f"{'median':>4s} {med[0]:7.2f} {med[1]:7.2f} {'':4s} {med[2]:14.2f}")
+
+
 def big():
     """Time HeadAdapt on a ~200k-vertex head (first, before the peers load the machine)."""
     tpl = load_template()
@@ -249,11 +287,14 @@ def main(argv=None):
                         help="scan-like heads (default) or the legacy ones the suite's tests use, to compare")
     parser.add_argument("--real", action="store_true", help="the real scans in ../shared/scans instead")
     parser.add_argument("--big", action="store_true", help="also time a ~200k-vertex head")
+    parser.add_argument("--oracle", action="store_true", help="the floor: maps that know the truth (no peers)")
     parser.add_argument("--no-nricp", action="store_true")
     args = parser.parse_args(argv)
     if args.big:
         big()
-    if args.real:
+    if args.oracle:
+        oracle(args)
+    elif args.real:
         real(args)
     else:
         synthetic(args)

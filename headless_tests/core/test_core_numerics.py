@@ -167,3 +167,25 @@ def test_distance_error_is_zero_on_itself_and_ignores_holes(tpl):
     # flipped normals never match
     de = metrics.distance_error(v, -vn, q, geometry.face_normals(v, t), w, 0.016)
     assert de.matched.mean() < 0.01
+
+
+def test_unfold_falls_back_to_a_harmonic_patch_where_relaxing_stalls():
+    """A 5x5 block of a flat grid pushed 6 edges sideways folds 10 triangles; one Jacobi step cannot
+    undo it (34 folds were left before the fallback). The harmonic patch leaves none and touches
+    nothing outside the vertices it reports as moved."""
+    n = 21
+    u, v = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")
+    rest = np.c_[u.ravel(), v.ravel(), np.zeros(n * n)] * 0.001
+    idx = np.arange(n * n).reshape(n, n)
+    a, b, c, d = idx[:-1, :-1].ravel(), idx[1:, :-1].ravel(), idx[1:, 1:].ravel(), idx[:-1, 1:].ravel()
+    t = np.r_[np.c_[a, b, c], np.c_[a, c, d]]
+    x = rest.copy()
+    block = np.zeros((n, n), bool)
+    block[8:13, 8:13] = True
+    x[block.ravel(), 0] += 0.006
+    assert len(geometry.folded(rest, x, t)) == 10
+    y, moved, left = geometry.unfold(rest, x, t, rounds=1, steps=1)
+    assert left == 0 and len(geometry.folded(rest, y, t)) == 0
+    assert np.array_equal(y[~moved], x[~moved])
+    # the repair goes back toward x as far as it can: the block keeps part of its push
+    assert np.mean(y[block.ravel(), 0] - rest[block.ravel(), 0]) > 0.0005

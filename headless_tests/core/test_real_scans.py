@@ -4,6 +4,7 @@ real Cyberware range scan of a face (the kind of scan the paper adapts to).
 The CT and its clicks: tools/realct.py; the clicks on the range scan and the two busts (stress
 tests: statues, a crown, a beard): data/*_fdps.json. These tests skip when ../shared/scans is absent.
 """
+import pathlib
 import warnings
 
 import numpy as np
@@ -60,14 +61,13 @@ def test_transferred_skull_lies_on_the_persons_own_skull(ct):
     assert np.median(d) < 3.0 and np.percentile(d, 75) < 5.0, (np.median(d), np.percentile(d, 75))
 
 
-@pytest.mark.xfail(strict=True, reason="median depth error 4.2 mm at the CT's landmarks since the bone follows "
-                   "the map's deep levels only (the skull as a whole lies closer: median 1.7 mm, was 2.0)")
 def test_tissue_depths_on_the_ct_are_those_of_the_transferred_skull(ct):
     rows = [r for r in realct.tissue_depths(ct) if np.isfinite(r[2]) and np.isfinite(r[3])]
     assert len(rows) >= 20
     err = np.array([abs(ours - real) for _, _, real, ours in rows])
-    # the transferred skull's depth against this person's real depth at each landmark
-    assert np.median(err) < 4.0, [(n, round(real, 1), round(ours, 1)) for n, _, real, ours in rows]
+    # the transferred skull's depth against this person's real depth at each landmark (3.25 mm since the
+    # unfold's harmonic fallback lets the pressed bone settle; 4.2 before)
+    assert np.median(err) < 3.6, [(n, round(real, 1), round(ours, 1)) for n, _, real, ours in rows]
 
 
 @pytest.mark.slow
@@ -120,10 +120,9 @@ def test_eyes_sit_in_the_real_orbits(ct):
         assert q.closest_points(centre[None])[2][0] * ct.mm > 4.0, eye       # not in the bone
 
 
-@pytest.mark.xfail(strict=True, reason="one lid vertex of the CT's closed left eye (3275 or its neighbour 3300) "
-                   "ends 0.7 mm inside the orbit's rim (winding number 0.52) since each level's solve is exact: "
-                   "the bone there stops at the socket's lining")
 def test_no_visible_skin_inside_the_transferred_skull(ct):
+    # one lid vertex of the closed left eye ended 0.7 mm inside the orbit's rim until the pressed
+    # bone's folds were unfolded by the harmonic fallback (geometry.unfold)
     tpl = ct.tpl
     visible = ~tpl.hidden
     tris = tpl.skull_tris
@@ -209,3 +208,29 @@ def _face(tpl):
     return np.isin(tpl.region, [tpl.region_names.index(r) for r in
                                 ("forehead", "brow_l", "brow_r", "nose", "cheek_l", "cheek_r",
                                  "upper_lip", "lower_lip", "chin_jaw")])
+
+
+@pytest.mark.parametrize("clicks_set", ["8", "11"])
+@pytest.mark.parametrize("scan", ["demosthenes", "fran", "headsq_ct", "nefertiti"])
+def test_real_scans_adapt_from_the_panel_s_click_sets(shared_scans, tpl, scan, clicks_set):
+    """Issue 15: each real scan adapts from only the clicks the panel asks for (the 8, or the 11),
+    as many of them as its landmark file has: no correct click dropped, no fold left, the face on
+    the scan (the honest outcome ok). Before the unfold's harmonic fallback the CT's closed eyes
+    kept 1-2 folded lid triangles and 1.5 mm RMS from 7 or 9 clicks (exit code 3)."""
+    import json
+
+    from headadapt_addon.core import mpeg4
+
+    path = realct.ROOT / "headless_tests" / "data" / f"{scan}_fdps.json"
+    meta = json.loads(path.read_text())
+    mesh = shared_scans / pathlib.Path(meta["scan"]).relative_to("../shared/scans")
+    verts, tris = meshio.read_mesh(mesh)[:2]
+    given = meshio.read_landmarks(path)
+    wanted = mpeg4.CLICKS_8 if clicks_set == "8" else mpeg4.CLICKS_11
+    clicks = {k: given[k] for k in wanted if k in given}
+    assert len(clicks) >= 7
+    res = adapt.adapt(tpl, verts, tris, clicks)
+    assert not res.dropped and not res.flagged, res.flagged
+    assert res.unfolded["folded_left"] == 0
+    assert res.outcome["ok"], res.outcome["warnings"]
+    assert res.outcome["seen_rms_mm"] < 1.3, res.outcome["seen_rms_mm"]

@@ -157,8 +157,9 @@ def unfold(rest, x, t, rounds=40, steps=10):
     """(x', moved mask, folded left): x (n,3) with its displacement from rest relaxed around the
     triangles still folded (Jacobi steps toward the neighbours' mean displacement, on their corners
     and a ring around them that widens every 4 rounds a fold resists) until nothing is folded or
-    `rounds` run out; then each relaxed patch goes back toward x as far as it can without a fold.
-    Same frame and unit as x; the rest of x is untouched."""
+    `rounds` run out; where folds are still left, the displacement over a widening ring around them
+    is solved harmonic exactly (_harmonic); then each relaxed patch goes back toward x as far as it
+    can without a fold. Same frame and unit as x; the rest of x is untouched."""
     x = np.array(x, dtype=np.float64)
     x0 = x.copy()
     mean = neighbour_mean(t, len(x))
@@ -175,9 +176,38 @@ def unfold(rest, x, t, rounds=40, steps=10):
         moved |= ring
         for _ in range(steps):
             x[ring] = rest[ring] + (mean @ (x - rest))[ring]
+    if len(folds(x)):
+        # the Jacobi steps did not settle (a fold pinned by a tight ring): the displacement over a ring
+        # around the folds solved harmonic exactly, the ring widened until nothing is folded (a
+        # harmonic map of a disc onto a convex patch does not fold, Rado-Kneser-Choquet)
+        x, moved = _harmonic(folds, rest, x, t, mean, moved)
     if moved.any() and not len(folds(x)):
         x = _give_back(folds, x, x0, t, mean, moved)
     return x, moved, len(folds(x))
+
+
+def _harmonic(folds, rest, x0, t, mean, moved, widen=(2, 4, 8, 16)):
+    """(x, moved): x0 with the displacement from rest replaced, over the folds of x0 and `widen`
+    rings around them, by the harmonic interpolation of its values on the ring's border; the
+    narrowest ring that folds nothing (else the widest tried)."""
+    from scipy.sparse.linalg import spsolve
+
+    seed = np.zeros(len(x0), bool)
+    seed[t[folds(x0)].ravel()] = True
+    ring, grown, y = seed.copy(), 0, x0
+    for n in widen:
+        for _ in range(n - grown):
+            ring |= (mean @ ring.astype(float)) > 0
+        grown = n
+        inside = np.flatnonzero(ring)
+        d = x0 - rest
+        system = (sparse.identity(len(inside), format="csc") - mean[inside][:, inside]).tocsc()
+        border = mean[inside][:, ~ring] @ d[~ring]
+        y = x0.copy()
+        y[inside] = rest[inside] + np.asarray(spsolve(system, border)).reshape(-1, 3)
+        if not len(folds(y)):
+            break
+    return y, moved | ring
 
 
 def _give_back(folds, x, x0, t, mean, moved, steps=8):
