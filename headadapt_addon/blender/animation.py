@@ -97,12 +97,48 @@ def preview_action(root, names=mpeg4.EXPRESSIONS, frames_each=PREVIEW_FRAMES, st
     return sc.frame_end
 
 
+def head_pivot(root):
+    """The point the head turns about (FDP 7.1, the top of the spine), in root's frame: stored on the
+    root by scene.add_template (the template's) and blendout.build_result_objects (the adapted one)."""
+    if "headadapt_head_pivot" in root:
+        return np.array(root["headadapt_head_pivot"], dtype=float)
+    from ..core.template import bundled_template  # a head made before the pivot was stored
+    return np.asarray(bundled_template().meta["head_pivot"], dtype=float)
+
+
+def head_rotation(root, anim, frames):
+    """Keyframe head_pitch/yaw/roll (FAP 48-50, AU = mpeg4.AU_RAD) as root's rotation about the head
+    pivot: the root's location is keyed with it so the pivot stays where it is. Returns how many of
+    the three the file gives."""
+    import mathutils
+    cols = {axis: anim.values[:, mpeg4.FAP_BY_NAME[name].number] for name, (axis, _) in FAP_HEAD.items()}
+    cols = {axis: col for axis, col in cols.items() if (~np.isnan(col)).any()}
+    if not cols:
+        return 0
+    base_rot, base_loc = np.array(root.rotation_euler), np.array(root.location)
+    angles = np.tile(base_rot, (len(frames), 1))
+    for axis, col in cols.items():
+        given = ~np.isnan(col)
+        angles[:, axis] = base_rot[axis] + np.interp(frames, frames[given], col[given] * mpeg4.AU_RAD)
+        _fcurve_set(root, "rotation_euler", frames[given], angles[given, axis], index=axis)
+    scaled_pivot = mathutils.Vector(np.array(root.scale) * head_pivot(root))
+    mode = root.rotation_mode if root.rotation_mode in ("XYZ", "XZY", "YXZ", "YZX", "ZXY", "ZYX") else "XYZ"
+
+    def turned(a):
+        return np.array(mathutils.Euler(a, mode).to_matrix() @ scaled_pivot)
+    rest = base_loc + turned(base_rot)
+    loc = np.array([rest - turned(a) for a in angles])
+    for axis in range(3):
+        _fcurve_set(root, "location", frames, loc[:, axis], index=axis)
+    return len(cols)
+
+
 def import_fap(root, anim, start=1):
     """Keyframe an MPEG-4 FapAnimation on a baked head: FAP keys, expressions, visemes, head rotation.
 
     A FAP's key value is its .fap value / the FAP units its key stands for (recorded at bake time);
     expressions take intensity / 63; visemes blend by viseme_blend / 63 (mpeg4.INTENSITY_MAX);
-    head_pitch/yaw/roll turn the root (AU = mpeg4.AU_RAD). Returns {what: count} keyed.
+    head_pitch/yaw/roll turn the root about the head pivot (head_rotation). Returns {what: count} keyed.
     """
     full = float(mpeg4.INTENSITY_MAX)
     objs = scene.template_objects(root)
@@ -122,13 +158,7 @@ def import_fap(root, anim, start=1):
         if fap.name in info and info[fap.name].get("fap_units"):
             keyframe_key(root, fap.name, frames[given], col[given] / info[fap.name]["fap_units"])
             counts["faps"] += 1
-    for name, (axis, _) in FAP_HEAD.items():
-        col = anim.values[:, mpeg4.FAP_BY_NAME[name].number]
-        given = ~np.isnan(col)
-        if given.any():
-            base = root.rotation_euler[axis]
-            _fcurve_set(root, "rotation_euler", frames[given], base + col[given] * mpeg4.AU_RAD, index=axis)
-            counts["head"] += 1
+    counts["head"] = head_rotation(root, anim, frames)
     ex = anim.expressions
     if (~np.isnan(ex[:, 0])).any():
         rows = ~np.isnan(ex[:, 0])

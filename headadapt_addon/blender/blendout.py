@@ -10,30 +10,23 @@ import numpy as np
 
 from ..core.anatomy import transfer
 from ..core.exceptions import FileFormatError
-from . import animation, bridge, scene
+from . import animation, bridge, scene, view
+from .view import heat_colours  # noqa: F401  (blendout.heat_colours: the colours of the heat map)
 
 RESULT_COLLECTION = "HeadAdapt result"
 
 
-def heat_colours(dist_mm, limit_mm=3.0):
-    """RGBA (n,4): blue at 0 mm through green and yellow to red at limit_mm and beyond; grey where NaN (no scan)."""
-    dist_mm = np.asarray(dist_mm, dtype=float)
-    t = np.clip(np.nan_to_num(dist_mm, nan=0.0) / limit_mm, 0.0, 1.0)
-    r = np.clip(2 * t, 0, 1)
-    g = np.clip(2 - 2 * t, 0, 1) * np.clip(2 * t + 0.3, 0, 1)
-    b = np.clip(1 - 2 * t, 0, 1)
-    rgba = np.c_[r, g, b, np.ones_like(t)]
-    rgba[np.isnan(dist_mm)] = (0.6, 0.6, 0.6, 1.0)
-    return rgba
+MESH_PARTS = ("skin", "cranium", "mandible", "teeth_lower", "eye_l", "eye_r", "teeth_upper", "tongue")
 
 
-def build_result_objects(tpl, result, target_scene, scan_matrix=None, anatomy=None):
+def build_result_objects(tpl, result, target_scene, scan_matrix=None, anatomy=None, name=None):
     """Add the adapted template (all parts) to a new "HeadAdapt result" collection, placed on the scan.
 
     The hierarchy keeps template-frame coordinates; its root carries scan_matrix @ inverse
     calibration, so it overlays the scan object. The skin gets a "HeadAdapt distance" colour
     attribute (distance to the scan, blue 0 mm to red 3 mm); the root keeps the anatomy (`anatomy`,
-    else transferred here) for the bake. Returns the root.
+    else transferred here) for the bake. With a name (the scan's), the root is "NAME adapted" and the
+    meshes "NAME skin", "NAME cranium", ... Returns the root.
     """
     import mathutils
 
@@ -41,8 +34,13 @@ def build_result_objects(tpl, result, target_scene, scan_matrix=None, anatomy=No
     target_scene.collection.children.link(coll)
     ana = anatomy if anatomy is not None else transfer(tpl, result)
     parts = ana.parts
-    root = scene.add_template(tpl, coll, name="HA Adapted head")
+    root = scene.add_template(tpl, coll, name=f"{name} adapted" if name else "HA Adapted head")
     objs = scene.template_objects(root)
+    if name:
+        for part in MESH_PARTS:
+            objs[part].name = objs[part].data.name = f"{name} {part}"
+    head_pivot = result.map_points(np.asarray(tpl.meta["head_pivot"], dtype=float)[None])[0]
+    root["headadapt_head_pivot"] = [float(c) for c in head_pivot]      # the adapted head turns about it
     pivot = ana.jaw_pivot
     objs["jaw_pivot"].location = pivot
     for name, verts in parts.items():
@@ -54,6 +52,9 @@ def build_result_objects(tpl, result, target_scene, scan_matrix=None, anatomy=No
     for o in root.children_recursive:
         if "headadapt_fdp" in o:
             o.location = ana.fdps[o["headadapt_fdp"]]
+        if "headadapt_marker" in o:         # held-out markers: where the adapted skin puts them
+            ref = tpl.meta["markers"][o["headadapt_marker"]]
+            o.location = np.asarray(ref["bary"]) @ parts[ref["part"]][tpl.parts[ref["part"]].tris[ref["face"]]]
         name = o.get("headadapt_muscle")
         if name in muscles:
             pts = np.array([muscles[name]["attachment"], muscles[name]["insertion"]])
@@ -67,7 +68,8 @@ def build_result_objects(tpl, result, target_scene, scan_matrix=None, anatomy=No
     root["headadapt_fapus"] = json.dumps(ana.fapus)
     root["headadapt_anatomy"] = ana.to_plain()      # float64, exactly what the bake simulates on
     dist_mm = result.distances * 1000.0
-    bridge.set_point_colors(objs["skin"].data, "HeadAdapt distance", heat_colours(dist_mm))
+    bridge.set_point_colors(objs["skin"].data, view.HEAT_ATTRIBUTE, view.heat_colours(dist_mm))
+    view.add_heat_legend(root, tpl, coll)
     m = mathutils.Matrix(result.similarity.inverse().matrix4().tolist())
     root.matrix_world = (scan_matrix if scan_matrix is not None else mathutils.Matrix.Identity(4)) @ m
     root["headadapt_report"] = json.dumps(result.report(), default=float)
@@ -84,29 +86,66 @@ def bake_result(tpl, root, kinds=("expression", "viseme", "fap"), preview=True, 
     if anatomy is None:
         anatomy = animation.stored_anatomy(tpl, root)
     keys, timing = bake.bake(tpl, anatomy, kinds=kinds, progress=progress)
+    return apply_bake(root, keys, timing, kinds, preview)
+
+
+def apply_bake(root, keys, timing, kinds, preview=True):
+    """Write baked keys (core.skin.bake.bake's) to root's shape keys (+ the preview action); timings.
+    The bake itself is numpy only: the panels run it on a worker thread and this in the main thread."""
     animation.write_shape_keys(root, keys)
     if preview and "expression" in kinds:
         animation.preview_action(root)
     return {"keys": len(keys), "build_s": timing["build_s"], "per_key_s": timing["per_key_s"]}
 
 
-def build_result_scene(tpl, result, scan_verts, scan_tris, landmarks, report, scan_name="scan", bake=True):
-    """Add the scan (with its landmarks), the adapted template and (bake) its shape keys; return the root."""
+def add_camera_and_light(root, target_scene):
+    """A camera looking at the head's face from the front and a sun from the front-left above, so a
+    saved .blend renders (F12) without setup; both aimed at root's world bounding box."""
+    import mathutils
+    pts = [o.matrix_world @ mathutils.Vector(c) for o in root.children_recursive if o.type == "MESH"
+           for c in o.bound_box]
+    lo = mathutils.Vector([min(p[i] for p in pts) for i in range(3)])
+    hi = mathutils.Vector([max(p[i] for p in pts) for i in range(3)])
+    centre, size = (lo + hi) / 2, max((hi - lo).length, 1e-6)
+    front = (root.matrix_world.to_3x3() @ mathutils.Vector((0.0, -1.0, 0.0))).normalized()  # template: face at -Y
+    cam = bpy.data.objects.new("HeadAdapt camera", bpy.data.cameras.new("HeadAdapt camera"))
+    cam.location = centre + front * 2.2 * size
+    cam.rotation_euler = (centre - cam.location).to_track_quat("-Z", "Y").to_euler()
+    cam.data.clip_end = 10 * size
+    cam.data.clip_start = size / 100
+    sun = bpy.data.objects.new("HeadAdapt light", bpy.data.lights.new("HeadAdapt light", "SUN"))
+    sun.location = centre + front * size + mathutils.Vector((-size, 0.0, size))
+    sun.rotation_euler = (centre - sun.location).to_track_quat("-Z", "Y").to_euler()
+    sun.data.energy = 3.0
+    for obj in (cam, sun):
+        target_scene.collection.objects.link(obj)
+    target_scene.camera = cam
+    return cam, sun
+
+
+def build_result_scene(tpl, result, scan_verts, scan_tris, landmarks, report, scan_name="scan", bake=True,
+                       progress=None):
+    """Add the scan (with its landmarks), the adapted template, a camera and a light, and (bake) its
+    shape keys (progress(fraction, key name) per key); return the root."""
     scan_obj = bpy.data.objects.new(scan_name, bridge.new_mesh(scan_name, scan_verts, scan_tris))
     bpy.context.scene.collection.objects.link(scan_obj)
     scan_obj["headadapt_landmarks"] = json.dumps({k: [float(c) for c in v] for k, v in landmarks.items()})
     ana = transfer(tpl, result)
     root = build_result_objects(tpl, result, bpy.context.scene, anatomy=ana)
+    add_camera_and_light(root, bpy.context.scene)
+    view.show_heat_map(bpy.data.screens)            # opened, the .blend shows the heat map and the legend
+    view.show_scan_as_wire(scan_obj)
     if bake:
-        report = dict(report, bake=bake_result(tpl, root, anatomy=ana))
+        report = dict(report, bake=bake_result(tpl, root, anatomy=ana, progress=progress))
     text = bpy.data.texts.new("HeadAdapt report")
     text.write(json.dumps(report, indent=1, default=float))
     root["headadapt_report"] = json.dumps(report, default=float)
     return root
 
 
-def write_blend(path, tpl, result, scan_verts, scan_tris, landmarks, report, bake=True):
-    """Write a fresh .blend with the scan and the adapted head, atomically (temp file, then rename)."""
+def write_blend(path, tpl, result, scan_verts, scan_tris, landmarks, report, bake=True, progress=None):
+    """Write a fresh .blend with the scan, the adapted head, a camera and a light, atomically (temp
+    file, then rename); progress(fraction, key name) while baking."""
     path = pathlib.Path(path)
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
@@ -116,7 +155,7 @@ def write_blend(path, tpl, result, scan_verts, scan_tris, landmarks, report, bak
         raise FileFormatError(f"cannot write {path}: {exc.strerror or exc}") from exc
     try:
         bpy.ops.wm.read_homefile(use_empty=True, use_factory_startup=True)
-        build_result_scene(tpl, result, scan_verts, scan_tris, landmarks, report, bake=bake)
+        build_result_scene(tpl, result, scan_verts, scan_tris, landmarks, report, bake=bake, progress=progress)
         pathlib.Path(tmp).unlink()          # mkstemp only reserved the name: Blender would back up the empty file
         bpy.ops.wm.save_as_mainfile(filepath=tmp, copy=True, compress=True)
         os.chmod(tmp, 0o644)
@@ -125,3 +164,97 @@ def write_blend(path, tpl, result, scan_verts, scan_tris, landmarks, report, bak
         pathlib.Path(tmp).unlink(missing_ok=True)
         pathlib.Path(tmp + "1").unlink(missing_ok=True)
     return path
+
+
+PREVIEW_VIEW_PX = 640           # each view of --preview is this many pixels square; front and side beside
+
+
+def _aim(cam, root, direction, distance=2.2):
+    """Point cam at the head's bounding box (the root's meshes, world) from `direction` (root frame)."""
+    import mathutils
+    pts = [o.matrix_world @ mathutils.Vector(c) for o in root.children_recursive if o.type == "MESH"
+           for c in o.bound_box]
+    lo = mathutils.Vector([min(p[i] for p in pts) for i in range(3)])
+    hi = mathutils.Vector([max(p[i] for p in pts) for i in range(3)])
+    centre, size = (lo + hi) / 2, max((hi - lo).length, 1e-6)
+    way = (root.matrix_world.to_3x3() @ mathutils.Vector(direction)).normalized()
+    up = (root.matrix_world.to_3x3() @ mathutils.Vector((0.0, 0.0, 1.0))).normalized()
+    cam.location = centre + way * distance * size
+    x = up.cross(way).normalized()                    # the camera looks down its -Z, its +Y up
+    cam.rotation_euler = mathutils.Matrix((x, way.cross(x), way)).transposed().to_euler()
+    cam.data.clip_start, cam.data.clip_end = size / 100, 10 * size
+    return cam
+
+
+def render_preview(path, root, scan_obj=None, px=PREVIEW_VIEW_PX):
+    """Render the head with its heat map from the front and from the side (Workbench, Solid shading by
+    the colour attribute) and write the two views side by side as one PNG (2 px x px), atomically.
+    The scan is left out of the picture (the heat map says how far it is)."""
+    path = pathlib.Path(path)
+    sc = bpy.context.scene
+    cams = []
+    for name, direction in (("front", (0.0, -1.0, 0.0)), ("side", (-1.0, 0.0, 0.0))):   # template: face at -Y
+        cam = bpy.data.objects.new(f"HeadAdapt preview {name}", bpy.data.cameras.new(f"HeadAdapt preview {name}"))
+        sc.collection.objects.link(cam)
+        cam.data.lens = 85.0
+        cams.append(_aim(cam, root, direction, distance=1.7))
+    bpy.context.view_layer.update()
+    before = (sc.camera, sc.render.engine, sc.render.resolution_x, sc.render.resolution_y,
+              sc.render.resolution_percentage, sc.render.filepath)
+    hidden = scan_obj.hide_render if scan_obj is not None else None
+    if sc.world is None:
+        sc.world = bpy.data.worlds.new("HeadAdapt preview")
+    sc.render.engine = "BLENDER_WORKBENCH"
+    sc.display.shading.light = "STUDIO"
+    sc.display.shading.color_type = "VERTEX"
+    sc.render.resolution_x = sc.render.resolution_y = px
+    sc.render.resolution_percentage = 100
+    sc.render.image_settings.file_format = "PNG"
+    sc.render.image_settings.color_mode = "RGBA"
+    if scan_obj is not None:
+        scan_obj.hide_render = True
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp_dir = tempfile.mkdtemp(prefix=f".{path.stem}.", dir=path.parent)
+    try:
+        views = []
+        for i, cam in enumerate(cams):
+            sc.camera = cam
+            sc.render.filepath = os.path.join(tmp_dir, f"view{i}.png")
+            bpy.ops.render.render(write_still=True)
+            img = bpy.data.images.load(sc.render.filepath)
+            pixels = np.empty(px * px * 4, dtype=np.float32)
+            img.pixels.foreach_get(pixels)
+            views.append(pixels.reshape(px, px, 4))
+            bpy.data.images.remove(img)
+        both = bpy.data.images.new("HeadAdapt preview", 2 * px, px, alpha=True)
+        both.pixels.foreach_set(np.concatenate(views, axis=1).ravel())
+        both.filepath_raw = os.path.join(tmp_dir, "both.png")
+        both.file_format = "PNG"
+        both.save()
+        bpy.data.images.remove(both)
+        os.chmod(os.path.join(tmp_dir, "both.png"), 0o644)
+        os.replace(os.path.join(tmp_dir, "both.png"), path)
+    except (RuntimeError, OSError) as exc:
+        raise FileFormatError(f"cannot write the preview {path}: {str(exc).strip()}") from None
+    finally:
+        for f in pathlib.Path(tmp_dir).glob("*"):
+            f.unlink(missing_ok=True)
+        os.rmdir(tmp_dir)
+        (sc.camera, sc.render.engine, sc.render.resolution_x, sc.render.resolution_y,
+         sc.render.resolution_percentage, sc.render.filepath) = before
+        if scan_obj is not None:
+            scan_obj.hide_render = hidden
+        for cam in cams:
+            data = cam.data
+            bpy.data.objects.remove(cam)
+            bpy.data.cameras.remove(data)
+    return path
+
+
+def write_preview(path, tpl, result, scan_verts, scan_tris, landmarks, report):
+    """The batch's --preview: a fresh scene with the scan and the adapted head (not baked), rendered
+    from the front and the side with the heat map into one PNG (render_preview)."""
+    bpy.ops.wm.read_homefile(use_empty=True, use_factory_startup=True)
+    root = build_result_scene(tpl, result, scan_verts, scan_tris, landmarks, report, bake=False)
+    scan_obj = next(o for o in bpy.context.scene.objects if "headadapt_landmarks" in o)
+    return render_preview(path, root, scan_obj)

@@ -12,6 +12,8 @@ from ..core import mpeg4
 
 PROP = "headadapt_landmarks"
 SUGGESTED_PROP = "headadapt_suggested"
+# the order the picker walks: the 8 clicks calibration and Suggest the Rest start from, then the rest
+GUIDED_ORDER = mpeg4.CLICKS_8 + tuple(k for k in mpeg4.FDPS if k not in mpeg4.CLICKS_8)
 
 
 def get_landmarks(obj, prop=PROP):
@@ -100,3 +102,36 @@ def mirror_suggestion(points, name):
     normal /= np.linalg.norm(normal)
     p = points[partner]
     return p - 2 * np.dot(p - centre, normal) * normal
+
+
+def seen_from(obj, points_local, eye_world, tolerance=0.05):
+    """{FDP id: bool} of landmarks (obj's local coordinates) that the eye (a world point) sees on obj:
+    the ray from the eye hits the surface no nearer than the point itself (less tolerance x the
+    object's size: a click in a crease, such as an eye corner, lies a few mm behind the lid or nose
+    seen from the side), so labels of points round the back of the head are not drawn through it."""
+    from mathutils import Vector
+
+    inv = obj.matrix_world.inverted()
+    eye = inv @ Vector(eye_world)
+    size = max(Vector(obj.bound_box[6]) - Vector(obj.bound_box[0]))
+    out = {}
+    for k, p in points_local.items():
+        to = Vector(p) - eye
+        hit, loc, _n, _f = obj.ray_cast(eye, to.normalized(), distance=to.length + size)
+        out[k] = (not hit) or (loc - eye).length >= to.length - tolerance * size
+    return out
+
+
+def thinned(points_2d, first=(), min_px=14.0):
+    """The FDP ids whose labels are drawn, in drawing order: `first` (the active FDP), then the 8
+    clicks, then the rest in the standard order, each left out when its screen point (x, y) lies
+    within min_px of a label already kept (labels would overlap)."""
+    order = [k for k in first if k in points_2d]
+    order += [k for k in mpeg4.CLICKS_8 if k in points_2d and k not in order]
+    order += [k for k in sorted(points_2d, key=mpeg4.fdp_sort_key) if k not in order]
+    kept = []
+    for k in order:
+        xy = np.asarray(points_2d[k], dtype=float)
+        if all(np.hypot(*(xy - np.asarray(points_2d[j], dtype=float))) >= min_px for j in kept):
+            kept.append(k)
+    return kept

@@ -12,6 +12,7 @@ Layout (all objects tagged with the custom property ``headadapt_part``)::
       Markers (empty) -> "Marker glabella" ...
       Muscles (empty) -> one curve per linear muscle (attachment -> insertion), one closed
                          curve per sphincter ellipse
+    FDPs, markers and muscles (the helpers) start hidden: the panels' Display toggles show them.
 """
 
 import bpy
@@ -28,6 +29,7 @@ COLOURS = {
     "muscle": (0.75, 0.1, 0.1, 1.0), "sphincter": (0.55, 0.1, 0.45, 1.0),
 }
 FDP_SIZE_M = 0.0015
+HELPER_PARTS = ("fdps", "fdp", "markers", "marker", "muscles", "muscle", "sphincter")
 
 
 def _material(name, colour):
@@ -81,6 +83,7 @@ def add_template(tpl, collection=None, name=ROOT_NAME):
     collection.objects.link(root)
     root["headadapt_part"] = "root"
     root["headadapt_template_sha256"] = tpl.meta["content_sha256"]
+    root["headadapt_head_pivot"] = [float(c) for c in tpl.meta["head_pivot"]]   # what the head turns about
 
     skin = _mesh_object("skin", tpl.skin.verts, tpl.skin.quads, collection, root, COLOURS["skin"])
     attr = skin.data.attributes.new("ha_region", "INT", "POINT")
@@ -125,6 +128,10 @@ def add_template(tpl, collection=None, name=ROOT_NAME):
         obj = _link(_curve(sph["name"], ring, collection, group, COLOURS["sphincter"], cyclic=True), collection,
                     group, "sphincter")
         obj["headadapt_muscle"] = sph["name"]
+    for obj in root.children_recursive:     # the helpers hidden until asked for (view.set_helpers_visible)
+        if obj.get("headadapt_part") in HELPER_PARTS:
+            obj.hide_set(True)                # the eye: still evaluated (world matrices right)
+            obj.hide_render = True
     bpy.context.view_layer.update()   # world matrices of the new hierarchy
     return root
 
@@ -134,7 +141,7 @@ def template_objects(root):
     out = {}
     for obj in root.children_recursive:
         key = obj.get("headadapt_part", obj.name)
-        if key in ("fdp", "marker", "muscle", "sphincter"):
+        if key in ("fdp", "marker", "muscle", "sphincter", "legend_label"):
             key = obj.name
         out[key] = obj
     return out
@@ -142,5 +149,11 @@ def template_objects(root):
 
 def head_root(context):
     """The head expressions act on: the adaptation result if there is one, else the template."""
-    s = context.scene.headadapt
-    return s.result_root or s.template_root
+    s = getattr(context.scene, "headadapt", None)
+    chosen = s and (s.result_root or s.template_root)
+    if chosen is not None:
+        return chosen
+    # a .blend the batch wrote (or one whose settings were lost): the roots are tagged on the objects
+    roots = {o.get("headadapt_part"): o for o in context.scene.objects if o.get("headadapt_part") in
+             ("result_root", "root")}
+    return roots.get("result_root") or roots.get("root")

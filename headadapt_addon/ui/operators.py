@@ -15,6 +15,9 @@ from ..blender import bridge, landmarks, scene
 from ..blender.scene import head_root
 from ..core import mpeg4
 from ..core.exceptions import HeadAdaptError
+from . import jobs
+from .jobs import Job, Modal, Run
+from .props import apply_display
 
 
 def template():
@@ -39,15 +42,54 @@ def scan_problem(context):
     return None
 
 
-def missing_calibration_fdps(context):
-    """Calibration FDPs not yet placed on the scan."""
-    pts = landmarks.get_landmarks(settings(context).scan)
-    return [k for k in mpeg4.CALIBRATION_FDPS if k not in pts]
+def visible_template_fdps():
+    """The template FDPs a scanner can see ({id: (3,)} template frame): the ones adapt calibrates on."""
+    from ..core.adapt.options import SCANNER_VISIBLE_PARTS
+    tpl = template()
+    return {k: p for k, p in tpl.fdp_points().items() if tpl.meta["fdps"][k]["part"] in SCANNER_VISIBLE_PARTS}
+
+
+def landmark_problem(context):
+    """None when the scan and its landmarks are what the batch's adapt accepts (core.adapt.calibration:
+    at least MIN_FDPS visible FDPs, finite, distinct, not on one line or plane; the paper's method
+    also needs its 8), else what is missing, as a sentence for a poll message or a report."""
+    from ..core.adapt import calibration
+    problem = scan_problem(context)
+    if problem:
+        return problem
+    s = settings(context)
+    pts = landmarks.get_landmarks(s.scan)
+    if not pts:
+        return (f"no landmarks on {s.scan.name!r}: click at least {calibration.MIN_FDPS} FDPs "
+                f"(best {', '.join(mpeg4.CLICKS_8)}) or import a landmark file")
+    try:
+        given = calibration.validate_landmarks(pts, what=f"scan {s.scan.name!r}")
+    except HeadAdaptError as exc:
+        return str(exc)
+    visible = visible_template_fdps()
+    usable = [k for k in given if k in visible]
+    if len(usable) < calibration.MIN_FDPS:
+        return (f"{len(usable)} of the placed FDPs lie on the skin or the eyes; calibration needs at least "
+                f"{calibration.MIN_FDPS} (best {', '.join(mpeg4.CLICKS_8)})")
+    if s.calibration == "paper":
+        missing = [k for k in mpeg4.CALIBRATION_FDPS if k not in given]
+        if missing:
+            return ("the paper's calibration needs FDP " + ", ".join(missing)
+                    + ": place them or choose Auto or Least squares")
+    return None
 
 
 def calibration_ready(context):
-    """The scene has a usable scan with every calibration FDP placed."""
-    return scan_problem(context) is None and not missing_calibration_fdps(context)
+    """The scene has a usable scan with enough landmarks to calibrate and adapt (the batch's rule)."""
+    return landmark_problem(context) is None
+
+
+def poll_with_message(cls, problem):
+    """poll()'s answer: True without a problem, else False with the problem as the greyed button's tooltip."""
+    if problem:
+        cls.poll_message_set(problem[:1].upper() + problem[1:])
+        return False
+    return True
 
 
 class _Base:
@@ -69,6 +111,7 @@ class HEADADAPT_OT_add_template(_Base, bpy.types.Operator):
             context.scene.collection.children.link(coll)
         root = scene.add_template(template(), coll)
         settings(context).template_root = root
+        apply_display(settings(context), context)
         self.report({"INFO"}, f"added the template: {len(template().skin.verts):,} skin vertices, "
                               f"{len(template().meta['fdps'])} FDPs")
         return {"FINISHED"}
@@ -82,7 +125,13 @@ class HEADADAPT_OT_use_active_as_scan(_Base, bpy.types.Operator):
     @classmethod
     def poll(cls, context):
         obj = context.active_object
-        return obj is not None and obj.type == "MESH" and "headadapt_part" not in obj
+        if obj is None:
+            return poll_with_message(cls, "no active object: click the scan in the viewport first")
+        if obj.type != "MESH":
+            return poll_with_message(cls, f"the active object {obj.name!r} is not a mesh")
+        if "headadapt_part" in obj:
+            return poll_with_message(cls, f"{obj.name!r} is part of a HeadAdapt head, not a scan")
+        return True
 
     def execute(self, context):
         obj = context.active_object
@@ -101,7 +150,7 @@ class HEADADAPT_OT_import_landmarks(_Base, ImportHelper, bpy.types.Operator):
 
     @classmethod
     def poll(cls, context):
-        return scan_problem(context) is None
+        return poll_with_message(cls, scan_problem(context))
 
     def execute(self, context):
         from ..core import meshio
@@ -130,7 +179,10 @@ class HEADADAPT_OT_export_landmarks(ExportHelper, bpy.types.Operator):
 
     @classmethod
     def poll(cls, context):
-        return scan_problem(context) is None and bool(landmarks.get_landmarks(settings(context).scan))
+        problem = scan_problem(context)
+        if problem is None and not landmarks.get_landmarks(settings(context).scan):
+            problem = "no landmarks on the scan to export"
+        return poll_with_message(cls, problem)
 
     def execute(self, context):
         from ..core import meshio
@@ -171,38 +223,117 @@ class HEADADAPT_OT_suggest_landmarks(_Base, bpy.types.Operator):
 
     @classmethod
     def poll(cls, context):
-        return calibration_ready(context)
+        return poll_with_message(cls, landmark_problem(context))
 
     def execute(self, context):
         from ..core.adapt import suggest
         scan, verts, tris = _scan_arrays(context)
-        try:
+        try:       # the clicks judged as Calibrate judges them: a wrong unit or wrong names refused, named
+            check_clicks(context)
             proposed = suggest.suggest_fdps(template(), verts, tris, landmarks.get_landmarks(scan))
         except HeadAdaptError as exc:
             return self.fail(str(exc))
+        if not proposed:
+            self.report({"INFO"}, "every FDP a scanner sees is placed already: nothing to suggest")
+            return {"FINISHED"}
         landmarks.set_landmarks(scan, proposed, prop=landmarks.SUGGESTED_PROP)
-        self.report({"INFO"}, f"suggested {len(proposed)} FDPs: accept them or move them")
+        self.report({"INFO"}, f"suggested {len(proposed)} FDPs: accept or reject them one by one, or all at once")
         return {"FINISHED"}
 
 
+def _suggestions_problem(context, fdp=""):
+    scan = settings(context).scan
+    sug = landmarks.get_landmarks(scan, landmarks.SUGGESTED_PROP) if scan is not None else {}
+    if not sug:
+        return "no suggestions yet: press Suggest the Rest first"
+    if fdp and fdp not in sug:
+        return f"FDP {fdp} is not among the suggestions"
+    return None
+
+
+def _take_suggestions(scan, names):
+    """Remove the named suggestions from the scan; returns {name: point} of those removed."""
+    sug = landmarks.get_landmarks(scan, landmarks.SUGGESTED_PROP)
+    taken = {k: sug.pop(k) for k in names if k in sug}
+    if sug:
+        landmarks.set_landmarks(scan, sug, prop=landmarks.SUGGESTED_PROP)
+    elif landmarks.SUGGESTED_PROP in scan:
+        del scan[landmarks.SUGGESTED_PROP]
+    return taken
+
+
 class HEADADAPT_OT_accept_suggestions(_Base, bpy.types.Operator):
-    """Accept the suggested FDPs as landmarks"""
+    """Accept suggested FDPs as landmarks: one (fdp), or all of them"""
     bl_idname = "headadapt.accept_suggestions"
     bl_label = "Accept Suggestions"
+    fdp: bpy.props.StringProperty(name="FDP", default="", description="The suggestion to accept (empty: all)")
 
     @classmethod
     def poll(cls, context):
-        scan = settings(context).scan
-        return scan is not None and bool(landmarks.get_landmarks(scan, landmarks.SUGGESTED_PROP))
+        return poll_with_message(cls, _suggestions_problem(context))
 
     def execute(self, context):
+        problem = _suggestions_problem(context, self.fdp)
+        if problem:
+            return self.fail(problem)
         scan = settings(context).scan
+        names = [self.fdp] if self.fdp else list(landmarks.get_landmarks(scan, landmarks.SUGGESTED_PROP))
         pts = landmarks.get_landmarks(scan)
-        sug = landmarks.get_landmarks(scan, landmarks.SUGGESTED_PROP)
-        pts.update({k: v for k, v in sug.items() if k not in pts})
+        taken = _take_suggestions(scan, names)
+        pts.update({k: v for k, v in taken.items() if k not in pts})
         landmarks.set_landmarks(scan, pts)
-        del scan[landmarks.SUGGESTED_PROP]
-        self.report({"INFO"}, f"{len(pts)} FDPs placed")
+        self.report({"INFO"}, f"accepted {', '.join(taken) if self.fdp else f'{len(taken)} suggestions'}: "
+                              f"{len(pts)} FDPs placed")
+        return {"FINISHED"}
+
+
+class HEADADAPT_OT_reject_suggestions(_Base, bpy.types.Operator):
+    """Reject suggested FDPs: one (fdp), or all of them; placed landmarks are not touched"""
+    bl_idname = "headadapt.reject_suggestions"
+    bl_label = "Reject Suggestions"
+    fdp: bpy.props.StringProperty(name="FDP", default="", description="The suggestion to reject (empty: all)")
+
+    @classmethod
+    def poll(cls, context):
+        return poll_with_message(cls, _suggestions_problem(context))
+
+    def execute(self, context):
+        problem = _suggestions_problem(context, self.fdp)
+        if problem:
+            return self.fail(problem)
+        scan = settings(context).scan
+        names = [self.fdp] if self.fdp else list(landmarks.get_landmarks(scan, landmarks.SUGGESTED_PROP))
+        taken = _take_suggestions(scan, names)
+        self.report({"INFO"}, f"rejected {', '.join(taken) if self.fdp else f'{len(taken)} suggestions'}")
+        return {"FINISHED"}
+
+
+class HEADADAPT_OT_load_sample_scan(_Base, bpy.types.Operator):
+    """Load the sample scan shipped with HeadAdapt (a synthetic head, mm) as the scan, to try the workflow"""
+    bl_idname = "headadapt.load_sample_scan"
+    bl_label = "Load Sample Scan"
+    with_landmarks: bpy.props.BoolProperty(name="With its landmarks", default=False,
+                                           description="Also set the sample's landmark file (all FDPs)")
+
+    def execute(self, context):
+        from ..batch import SAMPLE_DIR
+        from ..core import meshio
+        try:
+            verts, tris = meshio.read_mesh(SAMPLE_DIR / "scan.ply")
+            pts = meshio.read_landmarks(SAMPLE_DIR / "landmarks.json") if self.with_landmarks else {}
+        except (HeadAdaptError, OSError) as exc:
+            return self.fail(f"the sample scan cannot be read: {exc}")
+        obj = bpy.data.objects.new("sample scan", bridge.new_mesh("sample scan", verts, tris))
+        context.scene.collection.objects.link(obj)
+        if pts:
+            landmarks.set_landmarks(obj, pts)
+        settings(context).scan = obj
+        for other in context.view_layer.objects.selected:
+            other.select_set(False)
+        obj.select_set(True)
+        context.view_layer.objects.active = obj
+        self.report({"INFO"}, f"sample scan: {len(verts):,} vertices, {len(pts)} landmarks; "
+                              + ("Calibrate and Adapt" if pts else f"click {', '.join(mpeg4.CLICKS_8)}"))
         return {"FINISHED"}
 
 
@@ -213,29 +344,184 @@ class HEADADAPT_OT_calibrate(_Base, bpy.types.Operator):
 
     @classmethod
     def poll(cls, context):
-        return calibration_ready(context)
+        return poll_with_message(cls, landmark_problem(context))
 
     def execute(self, context):
-        from ..core.adapt import calibration
         s = settings(context)
-        pts = landmarks.get_landmarks(s.scan)
-        tpl_pts = template().fdp_points()
+        s.calibration_rms_mm = -1.0
         try:
-            given = calibration.validate_landmarks(pts, what=f"scan {s.scan.name!r}")
-            given = {k: v for k, v in given.items() if k in tpl_pts}
-            sim, info = calibration.calibrate(given, tpl_pts, method=s.calibration)
+            q_fdp, sim, info, rms_mm = check_clicks(context)
         except HeadAdaptError as exc:
             return self.fail(str(exc))
-        s.calibration_rms_mm = info["rms"] * 1000.0
+        head_mm = head_size_mm()
+        s.calibration_rms_mm = rms_mm
         s.scan["headadapt_calibration"] = json.dumps({"matrix": sim.matrix4().tolist(), **{
             k: v for k, v in info.items() if k != "residuals"}}, default=float)
-        self.report({"INFO"}, f"calibrated ({info['method']}): RMS {s.calibration_rms_mm:.2f} mm over "
-                              f"{len(given)} FDPs, scale {sim.scale:.4g}")
+        notes = info["handedness"]["notes"]
+        msg = (f"calibrated ({info['method']}): RMS {rms_mm:.2f} mm over {len(q_fdp)} FDPs "
+               f"({100 * rms_mm / head_mm:.1f}% of the head's width), scan unit = {1000 * sim.scale:.4g} mm")
+        if notes:
+            self.report({"WARNING"}, msg + "; " + "; ".join(notes))
+        else:
+            self.report({"INFO"}, msg)
         return {"FINISHED"}
 
 
-class HEADADAPT_OT_adapt(_Base, bpy.types.Operator):
-    """Adapt the template onto the scan level by level; the result goes to a new 'HeadAdapt result' collection"""
+def check_clicks(context):
+    """The batch's step 1 on the scene's clicks (labels put right, the similarity, every click on the
+    scan), the RMS judged against the head's width: (clicked FDPs, similarity, info, RMS mm), or a
+    HeadAdaptError naming the cause (too few, another unit, wrong names, a mirrored scan)."""
+    from ..core.adapt import pipeline
+    problem = landmark_problem(context)
+    if problem:
+        raise HeadAdaptError(problem)
+    scan, verts, tris = _scan_arrays(context)
+    pts = landmarks.get_landmarks(scan)
+    try:
+        fit, _tpl_fdps, q_fdp, sim, info = pipeline.calibrate(template(), verts, tris, pts,
+                                                              adapt_options(settings(context)))
+        pipeline.check_on_surface(fit.scan, q_fdp, fit.options)
+    except HeadAdaptError as exc:
+        hint = unit_hint(verts, pts)
+        raise HeadAdaptError(str(exc) + (f"; {hint}" if hint else "")) from exc
+    rms_mm = info["rms"] * 1000.0
+    head_mm = head_size_mm()
+    if rms_mm > CALIBRATION_RMS_LIMIT * head_mm:
+        raise HeadAdaptError(f"the landmarks do not fit the template's face: calibration RMS {rms_mm:.1f} mm is "
+                             f"{100 * rms_mm / head_mm:.0f}% of the head's width ({head_mm:.0f} mm; limit "
+                             f"{100 * CALIBRATION_RMS_LIMIT:.0f}%): FDPs given the wrong names, or a mirrored scan")
+    return q_fdp, sim, info, rms_mm
+
+
+CALIBRATION_RMS_LIMIT = 0.05     # of the head's width: people's faces differ from the template's by 1-3%
+
+
+def head_size_mm():
+    """The template head's width (ear to ear), mm: what calibration residuals are judged against."""
+    return float(template().skin.verts[:, 0].ptp()) * 1000.0
+
+
+def unit_hint(verts, pts):
+    """A sentence naming a unit mismatch when the landmarks' spread and the scan's size differ by more
+    than a factor of 5 (clicks span about 2/3 of a head scan), else ''."""
+    import numpy as np
+    p = np.array(list(pts.values()), dtype=float).reshape(-1, 3)
+    if len(p) < 2 or len(verts) == 0 or not np.isfinite(p).all():
+        return ""
+    ratio = float(np.ptp(verts, axis=0).max()) / max(float(np.ptp(p, axis=0).max()), 1e-12) / 1.5
+    if 0.2 < ratio < 5.0:
+        return ""
+    power = round(float(np.log10(ratio)))
+    return (f"the landmarks are about 10^{power} times {'smaller' if power > 0 else 'larger'} than the scan: "
+            "they are in another unit (mm, cm, m?) or belong to another scan")
+
+
+def adapt_options(s, levels=-1):
+    """The AdaptOptions of the scene settings s (levels >= 0 overrides s.max_levels): the one place the
+    panels make their options, from the same fields and defaults as the batch (batch.adapt_options)."""
+    from ..batch import adapt_options as batch_options
+    return batch_options(levels=s.max_levels if levels < 0 else levels, calibration=s.calibration,
+                         keep_flagged=not s.drop_flagged)
+
+
+def remove_result(root):
+    """Delete a result hierarchy (the root, everything under it, their meshes and curves) and its
+    collection when that is left empty."""
+    objs = [root, *root.children_recursive]
+    colls = {c for o in objs for c in o.users_collection}
+    datas = [o.data for o in objs if o.data is not None]
+    for o in objs:
+        bpy.data.objects.remove(o, do_unlink=True)
+    for d in datas:
+        if d.users == 0:
+            (bpy.data.meshes if isinstance(d, bpy.types.Mesh) else bpy.data.curves).remove(d)
+    for c in colls:
+        if c.name in bpy.data.collections and not c.all_objects:
+            bpy.data.collections.remove(c)
+
+
+class AdaptRun(Run):
+    """One Adapt of the scene's scan: the fit and the anatomy transfer on a Job, the result objects
+    built in the main thread when it is done."""
+    what = "Adapt"
+
+    def __init__(self, context, levels=-1):
+        import time
+
+        from ..core.adapt import adapt
+        from ..core.anatomy import transfer
+        self.t0 = time.perf_counter()
+        s = settings(context)
+        self.scan, verts, tris = _scan_arrays(context)
+        pts = landmarks.get_landmarks(self.scan)
+        opts = adapt_options(s, levels)
+        tpl = template()
+
+        def work(say):
+            result = adapt(tpl, verts, tris, pts, opts, progress=lambda f, msg: say(0.9 * f, msg))
+            say(0.9, "carrying the anatomy along")
+            return result, transfer(tpl, result)
+
+        self.work = work
+        self.job = Job(work)
+
+    def finish(self, context, value, report):
+        """Build the result objects (replacing the last result unless kept), store the report, say how it went."""
+        import time
+        result, anatomy = value
+
+        from ..blender import blendout
+        from ..core.adapt import outcome as outcome_text
+        s = settings(context)
+        jobs.show_progress(context, 1.0, "building the result objects")
+        old = s.result_root
+        if old is not None and not s.keep_results and old.name in bpy.data.objects:
+            remove_result(old)
+        root = blendout.build_result_objects(template(), result, context.scene, self.scan.matrix_world,
+                                             anatomy=anatomy, name=self.scan.name)
+        s.report_json = json.dumps(result.report(), default=float)
+        s.result_root = root
+        apply_display(s, context)          # heat map on, scan as wire, helpers as the toggles say
+        msg = (f"adapted: best level {result.best_level}, {outcome_text.verdict(result.outcome)}, "
+               f"{time.perf_counter() - self.t0:.1f} s")
+        turned = result.calibration_info.get("scan_pieces_turned", 0)
+        if turned:
+            msg += f"; {turned} scan piece(s) faced inward and were read turned round"
+        warnings = outcome_text.warning_lines(result.outcome, result.flagged, result.dropped)
+        if warnings:        # not ok (folds left, far from the scan) or flagged FDPs: say why (Report panel too)
+            report({"WARNING"}, msg + "; " + "; ".join(warnings))
+        else:
+            report({"INFO"}, msg)
+        return {"FINISHED"}
+
+
+class BakeRun(Run):
+    """One Bake of the head's expressions: the simulation on a Job, the shape keys written at the end."""
+    what = "Bake"
+
+    def __init__(self, root, kinds, preview):
+        from ..blender import animation
+        from ..core.skin import bake
+        self.root, self.kinds, self.preview = root, kinds, preview
+        tpl, anatomy = template(), animation.stored_anatomy(template(), root)
+
+        def work(say):
+            return bake.bake(tpl, anatomy, kinds=kinds, progress=lambda f, name: say(f, f"baking {name}"))
+
+        self.work = work
+        self.job = Job(work)
+
+    def finish(self, context, value, report):
+        from ..blender import blendout
+        jobs.show_progress(context, 1.0, "writing the shape keys")
+        timing = blendout.apply_bake(self.root, *value, self.kinds, self.preview)
+        report({"INFO"}, f"baked {timing['keys']} shape keys on {self.root.name!r} "
+                         f"({timing['per_key_s'] * 1000:.0f} ms per key)")
+        return {"FINISHED"}
+
+
+class HEADADAPT_OT_adapt(Modal, _Base, bpy.types.Operator):
+    """Adapt the template onto the scan level by level (Esc cancels); the result replaces the previous one (or is kept beside it)"""
     bl_idname = "headadapt.adapt"
     bl_label = "Adapt"
     levels: bpy.props.IntProperty(name="Levels", default=-1, min=-1, max=8,
@@ -243,48 +529,14 @@ class HEADADAPT_OT_adapt(_Base, bpy.types.Operator):
 
     @classmethod
     def poll(cls, context):
-        return calibration_ready(context)
+        return poll_with_message(cls, landmark_problem(context))
 
-    def execute(self, context):
-        from ..blender import blendout
-        from ..core.adapt import AdaptOptions, adapt
-        from ..core.adapt import outcome as outcome_text
-        s = settings(context)
-        problem = scan_problem(context)
-        if problem:
-            return self.fail(problem)
-        scan, verts, tris = _scan_arrays(context)
-        pts = landmarks.get_landmarks(scan)
-        wm = context.window_manager
-        wm.progress_begin(0, 100)
-        try:
-            opts = AdaptOptions(max_levels=s.max_levels if self.levels < 0 else self.levels,
-                                calibration=s.calibration, drop_flagged=s.drop_flagged)
-            result = adapt(template(), verts, tris, pts, opts,
-                           progress=lambda f, msg: wm.progress_update(int(100 * f)))
-        except HeadAdaptError as exc:
-            return self.fail(str(exc))
-        finally:
-            wm.progress_end()
-        report = result.report()
-        s.report_json = json.dumps(report, default=float)
-        root = blendout.build_result_objects(template(), result, context.scene, scan.matrix_world)
-        s.result_root = root
-        msg = (f"adapted: best level {result.best_level}, {outcome_text.verdict(result.outcome)}, "
-               f"{result.seconds:.2f} s")
-        turned = result.calibration_info.get("scan_pieces_turned", 0)
-        if turned:
-            msg += f"; {turned} scan piece(s) faced inward and were read turned round"
-        warnings = outcome_text.warning_lines(result.outcome, result.flagged, result.dropped)
-        if warnings:        # not ok (folds left, far from the scan) or flagged FDPs: say why (Report panel too)
-            self.report({"WARNING"}, msg + "; " + "; ".join(warnings))
-        else:
-            self.report({"INFO"}, msg)
-        return {"FINISHED"}
+    def make_run(self, context):
+        return landmark_problem(context) or AdaptRun(context, self.levels)
 
 
-class HEADADAPT_OT_bake_expressions(_Base, bpy.types.Operator):
-    """Simulate the skin for the chosen sets and bake them to shape keys, with a preview action"""
+class HEADADAPT_OT_bake_expressions(Modal, _Base, bpy.types.Operator):
+    """Simulate the skin for the chosen sets and bake them to shape keys, with a preview action (Esc cancels)"""
     bl_idname = "headadapt.bake_expressions"
     bl_label = "Bake Expressions"
     sets: bpy.props.EnumProperty(
@@ -297,27 +549,17 @@ class HEADADAPT_OT_bake_expressions(_Base, bpy.types.Operator):
 
     @classmethod
     def poll(cls, context):
-        return head_root(context) is not None
+        if head_root(context) is None:
+            return poll_with_message(cls, "no head in the scene: add the template or adapt first")
+        return True
 
-    def execute(self, context):
-        from ..blender import blendout
+    def make_run(self, context):
         root = head_root(context)
         if root is None:
-            return self.fail("no head: add the template or adapt first")
+            return "no head: add the template or adapt first"
         if not self.sets:
-            return self.fail("choose at least one set to bake")
-        wm = context.window_manager
-        wm.progress_begin(0, 100)
-        try:
-            timing = blendout.bake_result(template(), root, kinds=tuple(self.sets), preview=self.preview,
-                                          progress=lambda f, _name: wm.progress_update(int(100 * f)))
-        except HeadAdaptError as exc:
-            return self.fail(str(exc))
-        finally:
-            wm.progress_end()
-        self.report({"INFO"}, f"baked {timing['keys']} shape keys on {root.name!r} "
-                              f"({timing['per_key_s'] * 1000:.0f} ms per key)")
-        return {"FINISHED"}
+            return "choose at least one set to bake"
+        return BakeRun(root, tuple(self.sets), self.preview)
 
 
 class HEADADAPT_OT_import_fap(_Base, ImportHelper, bpy.types.Operator):
@@ -329,7 +571,9 @@ class HEADADAPT_OT_import_fap(_Base, ImportHelper, bpy.types.Operator):
 
     @classmethod
     def poll(cls, context):
-        return head_root(context) is not None
+        if head_root(context) is None:
+            return poll_with_message(cls, "no head in the scene: add the template or adapt first")
+        return True
 
     def execute(self, context):
         from ..blender import animation
@@ -347,7 +591,8 @@ class HEADADAPT_OT_import_fap(_Base, ImportHelper, bpy.types.Operator):
 
 classes = (HEADADAPT_OT_add_template, HEADADAPT_OT_use_active_as_scan, HEADADAPT_OT_import_landmarks,
            HEADADAPT_OT_export_landmarks, HEADADAPT_OT_clear_landmark, HEADADAPT_OT_suggest_landmarks,
-           HEADADAPT_OT_accept_suggestions, HEADADAPT_OT_calibrate, HEADADAPT_OT_adapt,
+           HEADADAPT_OT_accept_suggestions, HEADADAPT_OT_reject_suggestions, HEADADAPT_OT_load_sample_scan,
+           HEADADAPT_OT_calibrate, HEADADAPT_OT_adapt,
            HEADADAPT_OT_bake_expressions, HEADADAPT_OT_import_fap)
 
 

@@ -1,6 +1,7 @@
 """Sidebar tab "HeadAdapt" in the 3D viewport: panels in the order of the work, each showing state."""
 
 import json
+import pathlib
 import textwrap
 
 import bpy
@@ -16,6 +17,7 @@ PANELS = (
     ("LANDMARKS", "Landmarks"),
     ("CALIBRATE", "Calibrate"),
     ("ADAPT", "Adapt"),
+    ("DISPLAY", "Display"),
     ("ANATOMY", "Anatomy"),
     ("EXPRESSIONS", "Expressions"),
     ("REPORT", "Report"),
@@ -24,6 +26,15 @@ PANELS = (
 
 def _settings(context):
     return context.scene.headadapt
+
+
+def _wrap(context):
+    """Characters per line that fit the sidebar (its width in pixels less an icon), for
+    textwrap: messages wrap instead of being cut off in a narrow sidebar (about 8 px a character)."""
+    region = getattr(context, "region", None)
+    if region is None or region.type != "UI" or region.width < 50:
+        return 60
+    return max(24, int(region.width / (8.0 * context.preferences.view.ui_scale)) - 6)
 
 
 def draw_template(layout, context):
@@ -43,33 +54,67 @@ def draw_scan(layout, context):
     else:
         layout.label(text=f"{len(s.scan.data.vertices):,} vertices, {len(s.scan.data.polygons):,} faces")
     layout.operator("headadapt.use_active_as_scan", icon="EYEDROPPER")
+    layout.operator("headadapt.load_sample_scan", icon="USER")
 
 
 def draw_landmarks(layout, context):
     s = _settings(context)
     pts = landmarks.get_landmarks(s.scan)
-    missing_cal = [k for k in mpeg4.CALIBRATION_FDPS if k not in pts]
+    from .operators import landmark_problem
     col = layout.column()
     col.enabled = s.scan is not None
     col.label(text=f"{len(pts)} of {len(mpeg4.FDPS)} FDPs placed")
-    col.label(text=("Calibration FDPs: all placed" if not missing_cal else
-                    "Calibration needs: " + ", ".join(missing_cal)),
-              icon="CHECKMARK" if not missing_cal else "ERROR")
+    problem = landmark_problem(context) if s.scan is not None else None
+    if problem is None and s.scan is not None:
+        col.label(text="Enough to calibrate and adapt", icon="CHECKMARK")
+    elif problem:
+        for i, part in enumerate(textwrap.wrap(problem[:1].upper() + problem[1:], _wrap(context))):
+            col.label(text=part, icon="ERROR" if i == 0 else "BLANK1")
     col.prop(s, "active_fdp")
     col.label(text=mpeg4.FDPS[s.active_fdp].label)
     col.operator("headadapt.pick_landmarks", icon="RESTRICT_SELECT_OFF")
     row = col.row(align=True)
-    row.operator("headadapt.suggest_landmarks", icon="LIGHT")
-    row.operator("headadapt.accept_suggestions", text="Accept")
-    row = col.row(align=True)
     row.operator("headadapt.import_landmarks", icon="IMPORT")
     row.operator("headadapt.export_landmarks", icon="EXPORT")
+    # the 8 clicks first: what calibration and Suggest the Rest start from, with a picture of where
     box = col.box().column(align=True)
-    for name in mpeg4.CALIBRATION_FDPS + tuple(k for k in pts if k not in mpeg4.CALIBRATION_FDPS):
+    box.label(text=f"The 8 clicks: {sum(k in pts for k in mpeg4.CLICKS_8)} of 8")
+    picture = reference_preview()
+    if picture is not None and sum(k in pts for k in mpeg4.CLICKS_8) < 8:
+        box.template_icon(icon_value=picture.icon_id, scale=7.0)
+    for name in mpeg4.CLICKS_8:
+        _fdp_row(box, name, pts, s)
+    row = col.row(align=True)
+    row.operator("headadapt.suggest_landmarks", icon="LIGHT")
+    suggested = landmarks.get_landmarks(s.scan, landmarks.SUGGESTED_PROP) if s.scan is not None else {}
+    if suggested:      # each suggestion accepted or rejected on its own, or all at once
+        box = col.box().column(align=True)
         row = box.row(align=True)
-        row.label(text=f"{name}  {mpeg4.FDPS[name].label}", icon="CHECKMARK" if name in pts else "BLANK1")
-        if name in pts:
-            row.operator("headadapt.clear_landmark", text="", icon="X").fdp = name
+        row.label(text=f"{len(suggested)} suggested")
+        row.operator("headadapt.accept_suggestions", text="All", icon="CHECKMARK").fdp = ""
+        row.operator("headadapt.reject_suggestions", text="None", icon="X").fdp = ""
+        for name in suggested:
+            row = box.row(align=True)
+            row.label(text=f"{name}  {mpeg4.FDPS[name].label}", icon="LIGHT")
+            row.operator("headadapt.accept_suggestions", text="", icon="CHECKMARK").fdp = name
+            row.operator("headadapt.reject_suggestions", text="", icon="X").fdp = name
+    # the rest folded away
+    others = [k for k in mpeg4.FDPS if k not in mpeg4.CLICKS_8]
+    row = col.row()
+    row.prop(s, "show_all_fdps", emboss=False, icon="DISCLOSURE_TRI_DOWN" if s.show_all_fdps else "DISCLOSURE_TRI_RIGHT",
+             text=f"Other FDPs (optional): {sum(k in pts for k in others)} of {len(others)} placed")
+    if s.show_all_fdps:
+        box = col.box().column(align=True)
+        for name in others:
+            _fdp_row(box, name, pts, s)
+
+
+def _fdp_row(layout, name, pts, s):
+    row = layout.row(align=True)
+    mark = "CHECKMARK" if name in pts else ("RADIOBUT_ON" if name == s.active_fdp else "BLANK1")
+    row.label(text=f"{name}  {mpeg4.FDPS[name].label}", icon=mark)
+    if name in pts:
+        row.operator("headadapt.clear_landmark", text="", icon="X").fdp = name
 
 
 def draw_calibrate(layout, context):
@@ -87,8 +132,29 @@ def draw_adapt(layout, context):
     row = layout.row(align=True)
     row.operator("headadapt.adapt", text="Adapt All Levels", icon="PLAY").levels = -1
     row.operator("headadapt.adapt", text="Level 0 Only").levels = 0
+    layout.prop(s, "keep_results")
+    if s.progress_text:
+        layout.label(text=s.progress_text, icon="TIME")
     if s.result_root is not None:
         layout.label(text=f"Result: {s.result_root.name}", icon="CHECKMARK")
+
+
+def draw_display(layout, context):
+    s = _settings(context)
+    layout.prop(s, "show_heat_map")
+    if s.show_heat_map:          # the legend: the heat map's colours at their distances to the scan
+        row = layout.row(align=True)
+        for i in range(4):
+            col = row.column(align=True)
+            col.label(text=s.bl_rna.properties[f"legend_{i}"].name)
+            col.prop(s, f"legend_{i}", text="")
+        layout.label(text="distance to the scan")
+        layout.label(text="grey: no scan there")
+    layout.prop(s, "scan_as_wire")
+    row = layout.row(align=True)
+    row.prop(s, "show_fdps", toggle=True)
+    row.prop(s, "show_markers", toggle=True)
+    row.prop(s, "show_muscles", toggle=True)
 
 
 def draw_anatomy(layout, context):
@@ -96,7 +162,7 @@ def draw_anatomy(layout, context):
     if s.result_root is None:
         layout.label(text="Adapt first: the anatomy follows the adaptation", icon="INFO")
     else:
-        layout.label(text="Skull, muscles, eyes, teeth and tongue follow the result", icon="CHECKMARK")
+        layout.label(text="The anatomy follows the result", icon="CHECKMARK")
 
 
 def draw_expressions(layout, context):
@@ -118,14 +184,14 @@ def draw_report(layout, context):
         layout.label(text="No adaptation yet")
         return
     rep = json.loads(s.report_json)
-    grid = layout.grid_flow(columns=5, even_columns=True, align=True)
-    for head in ("Level", "Pairs", "E_d", "E", "s"):
-        grid.label(text=head)
-    for lv in rep["levels"]:
-        mark = "*" if lv["level"] == rep["best_level"] else ""
-        for cell in (f"{lv['level']}{mark}", str(lv["pairs"]), f"{lv['E_d']:.3f}", f"{lv['E']:.3f}",
-                     f"{lv['seconds']:.2f}"):
-            grid.label(text=cell)
+    table = layout.column(align=True)
+    for cells in report_rows(rep):      # one row per level: read across, as a table is read
+        row = table.row(align=True)
+        for cell in cells:
+            row.label(text=cell)
+    dropped = rep.get("dropped_fdps") or []
+    layout.label(text="Dropped clicks: " + (", ".join(dropped) if dropped else "none"),
+                 icon="X" if dropped else "CHECKMARK")
     layout.label(text=rep.get("stopped_because", ""))
     outcome = rep.get("outcome")
     if outcome:
@@ -134,13 +200,27 @@ def draw_report(layout, context):
         for line in outcome_text.measures(outcome):
             layout.label(text=line)
     for line in outcome_text.warning_lines(outcome, rep.get("flagged_fdps"), rep.get("dropped_fdps", ())):
-        for i, part in enumerate(textwrap.wrap(line, 60)):     # the sidebar is narrow: wrap, do not cut
+        for i, part in enumerate(textwrap.wrap(line, _wrap(context))):   # the sidebar is narrow: wrap, do not cut
             layout.label(text=part, icon="ERROR" if i == 0 else "BLANK1")
-    layout.label(text="Heat map: colour attribute 'HeadAdapt distance' (Solid, Attribute)")
+    layout.label(text="Heat map and its legend: Display panel")
+
+
+def report_rows(rep):
+    """The Report panel's level table as rows of cells, the header first (units in it); the best level
+    starred; E_m (held-out markers, mm^2) only where markers were given."""
+    markers = any(lv.get("E_m") is not None for lv in rep["levels"])
+    rows = [["Level", "Pairs", "E_d mm²", "RMS mm", *(["E_m mm²"] if markers else []), "E mm²", "Time s"]]
+    for lv in rep["levels"]:
+        rms = lv.get("E_d_rms_mm")
+        rows.append([f"{lv['level']}{'*' if lv['level'] == rep['best_level'] else ''}", str(lv["pairs"]),
+                     f"{lv['E_d']:.3f}", "-" if rms is None else f"{rms:.2f}",
+                     *([f"{lv['E_m']:.2f}" if lv.get("E_m") is not None else "-"] if markers else []),
+                     f"{lv['E']:.3f}", f"{lv['seconds']:.1f}"])
+    return rows
 
 
 DRAW = {"TEMPLATE": draw_template, "SCAN": draw_scan, "LANDMARKS": draw_landmarks,
-        "CALIBRATE": draw_calibrate, "ADAPT": draw_adapt, "ANATOMY": draw_anatomy,
+        "CALIBRATE": draw_calibrate, "ADAPT": draw_adapt, "DISPLAY": draw_display, "ANATOMY": draw_anatomy,
         "EXPRESSIONS": draw_expressions, "REPORT": draw_report}
 
 
@@ -164,4 +244,30 @@ def _make_panel(key, label, order):
 classes = tuple(_make_panel(key, label, i) for i, (key, label) in enumerate(PANELS))
 
 
-register, unregister = bpy.utils.register_classes_factory(classes)
+_register_classes, _unregister_classes = bpy.utils.register_classes_factory(classes)
+REFERENCE = pathlib.Path(__file__).resolve().parents[2] / "assets" / "reference" / "clicks8.png"
+_previews = {}
+
+
+def reference_preview():
+    """The 8 clicks' reference picture (tools/render_reference.py) as a preview, None if it is missing."""
+    coll = _previews.get("coll")
+    if coll is None or not REFERENCE.is_file():
+        return None
+    if "clicks8" not in coll:
+        coll.load("clicks8", str(REFERENCE), "IMAGE")
+    return coll["clicks8"]
+
+
+def register():
+    import bpy.utils.previews
+    _previews["coll"] = bpy.utils.previews.new()
+    _register_classes()
+
+
+def unregister():
+    _unregister_classes()
+    coll = _previews.pop("coll", None)
+    if coll is not None:
+        import bpy.utils.previews
+        bpy.utils.previews.remove(coll)

@@ -39,7 +39,10 @@ def draw_landmarks_3d():
         for o in s.template_root.children_recursive:
             if o.get("headadapt_fdp") == s.active_fdp:
                 groups["template"].append(np.array(o.matrix_world.translation))
-    shader = gpu.shader.from_builtin("POINT_UNIFORM_COLOR")
+    try:
+        shader = gpu.shader.from_builtin("POINT_UNIFORM_COLOR")
+    except ValueError:                   # Blender before 4.0 (Debian's 3.4): points from the plain shader
+        shader = gpu.shader.from_builtin("UNIFORM_COLOR")
     gpu.state.point_size_set(9.0)
     gpu.state.depth_test_set("LESS_EQUAL")
     for name, ps in groups.items():
@@ -53,7 +56,8 @@ def draw_landmarks_3d():
 
 
 def draw_labels_2d():
-    """Draw the FDP ids next to their points."""
+    """Draw the FDP ids next to their points: only where the view sees the point (not through the
+    head) and thinned so no two labels overlap (the active FDP and the 8 clicks first)."""
     import blf
     from bpy_extras.view3d_utils import location_3d_to_region_2d
 
@@ -61,11 +65,21 @@ def draw_labels_2d():
     s = getattr(context.scene, "headadapt", None)
     if s is None or s.scan is None or context.region_data is None:
         return
-    pts = landmarks.world_points(s.scan, landmarks.get_landmarks(s.scan))
+    local = landmarks.get_landmarks(s.scan)
+    pts = landmarks.world_points(s.scan, local)
+    screen = {}
     for k, p in pts.items():
         xy = location_3d_to_region_2d(context.region, context.region_data, p)
-        if xy is None:
-            continue
+        if xy is not None:
+            screen[k] = (xy[0], xy[1])
+    eye = np.array(context.region_data.view_matrix.inverted().translation)
+    if not context.region_data.is_perspective:      # orthographic: look from far along the view
+        centre = np.mean(list(pts.values()), axis=0) if pts else eye
+        back = np.array(context.region_data.view_matrix.inverted().to_3x3().col[2])
+        eye = centre + back * 10.0 * float(max(s.scan.dimensions))
+    seen = landmarks.seen_from(s.scan, {k: local[k] for k in screen}, eye)
+    for k in landmarks.thinned({k: xy for k, xy in screen.items() if seen[k]}, first=(s.active_fdp,)):
+        xy = screen[k]
         blf.size(0, 13 if k == s.active_fdp else 11)
         blf.color(0, *(_colours()["active"] if k == s.active_fdp else (1, 1, 1, 1)))
         blf.position(0, xy[0] + 6, xy[1] + 4, 0)
@@ -154,7 +168,7 @@ class HEADADAPT_OT_pick_landmarks(bpy.types.Operator):
                     sug = landmarks.get_landmarks(s.scan, landmarks.SUGGESTED_PROP)
                     if sug.pop(s.active_fdp, None) is not None:      # a moved suggestion is accepted
                         landmarks.set_landmarks(s.scan, sug, prop=landmarks.SUGGESTED_PROP)
-                    nxt = landmarks.next_missing(pts, after=s.active_fdp)
+                    nxt = landmarks.next_missing(pts, order=landmarks.GUIDED_ORDER, after=s.active_fdp)
                     if nxt:
                         s.active_fdp = nxt
             context.area.tag_redraw()

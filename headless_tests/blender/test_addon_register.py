@@ -11,7 +11,7 @@ def test_register_adds_sidebar_panels_in_work_order(clean_scene):
         from headadapt_addon.ui import panels as ui
 
         labels = [cls.bl_label for cls in ui.classes]
-        assert labels == ["Template", "Scan", "Landmarks", "Calibrate", "Adapt", "Anatomy",
+        assert labels == ["Template", "Scan", "Landmarks", "Calibrate", "Adapt", "Display", "Anatomy",
                           "Expressions", "Report"]
         for cls in ui.classes:
             registered = getattr(bpy.types, cls.bl_idname, None)

@@ -116,7 +116,7 @@ def test_every_panel_draws_on_empty_and_full_scenes(addon, tpl):
     landmarks.set_landmarks(scan, {k: p * 1000 for k, p in tpl.fdp_points().items()})
     full = draw_all()
     assert any(t.startswith("In scene:") for t in full)
-    assert "Calibration FDPs: all placed" in full
+    assert "Enough to calibrate and adapt" in full
 
 
 def _report_labels(rep):

@@ -201,16 +201,26 @@ def test_batch_writes_a_blend_that_reopens_with_the_report(tmp_path):
                            "--blend", str(out / "head.blend")], capture_output=True, text=True)
     assert proc.returncode == 0, proc.stderr
     assert not list(out.glob(".*")), list(out.glob(".*"))          # no temporary or backup file left behind
+    # the bake (20-50 s) prints its progress: a line per tenth, ending at 100%
+    baking = [line for line in proc.stdout.splitlines() if line.strip().startswith("baking")]
+    assert 5 <= len(baking) <= 11 and "100.0%" in baking[-1], proc.stdout
     check = ("import bpy, json, sys; bpy.ops.wm.open_mainfile(filepath=sys.argv[1]);"
              "root = bpy.data.objects['HA Adapted head']; rep = json.loads(root['headadapt_report']);"
              "scan = bpy.data.objects['scan'];"
              "print('OK', len(rep['levels']), 'HeadAdapt report' in bpy.data.texts, 'headadapt_landmarks' in scan,"
-             " len([o for o in root.children_recursive if o.type == 'MESH']));"
+             " len([o for o in root.children_recursive if o.type == 'MESH']));"   # 8 parts, the heat legend
+             "cam = bpy.context.scene.camera; print('VIEW', cam.name, cam.type,"
+             " [o.type for o in bpy.data.objects if o.type == 'LIGHT']);"
              "skin = next(o for o in root.children_recursive if o.get('headadapt_part') == 'skin');"
              "kb = skin.data.shape_keys.key_blocks; print('KEYS', len(kb), 'joy' in kb, 'open_jaw' in kb,"
-             " 'viseme_A' in kb, rep['bake']['keys'], bpy.context.scene.frame_end)")
+             " 'viseme_A' in kb, rep['bake']['keys'], bpy.context.scene.frame_end);"
+             "views = [s for sc in bpy.data.screens for a in sc.areas for s in a.spaces if s.type == 'VIEW_3D'];"
+             "print('SHOW', len(views) > 0, all(v.shading.color_type == 'VERTEX' for v in views),"
+             " scan.display_type, all(o.hide_get() for o in root.children_recursive if 'headadapt_fdp' in o))")
     res = subprocess.run([sys.executable, "-c", check, str(out / "head.blend")], capture_output=True, text=True)
-    assert "OK 2 True True 8" in res.stdout, res.stdout + res.stderr
+    assert "OK 2 True True 9" in res.stdout, res.stdout + res.stderr
+    assert "VIEW HeadAdapt camera CAMERA ['LIGHT']" in res.stdout, res.stdout       # renders without setup
+    assert "SHOW True True WIRE True" in res.stdout, res.stdout     # heat map on, scan as wire, FDPs hidden
     # shape keys: Basis + 6 expressions + 14 visemes + the skin FAPs; the preview action plays the six
     keys = res.stdout.split("KEYS")[1].split()
     assert int(keys[0]) > 1 + 6 + 14 + 40 and keys[1:4] == ["True", "True", "True"], res.stdout
@@ -220,9 +230,14 @@ def test_batch_writes_a_blend_that_reopens_with_the_report(tmp_path):
 @pytest.mark.slow
 def test_expressions_panel_bakes_the_template_and_imports_a_fap_file(ui_scene, tmp_path):
     import bpy
+    from mathutils import Vector
 
     from headadapt_addon.core import mpeg4
     from headadapt_addon.core.fapfile import FapAnimation, write_fap
+    from headadapt_addon.core.template import bundled_template
+
+    def tpl_head_pivot():
+        return bundled_template().meta["head_pivot"]
 
     with bpy.context.temp_override(**ui_scene):
         with pytest.raises(RuntimeError, match="poll"):
@@ -248,11 +263,17 @@ def test_expressions_panel_bakes_the_template_and_imports_a_fap_file(ui_scene, t
         n = 3
         vals = np.full((n, mpeg4.N_FAPS + 1), np.nan)
         vals[:, 3] = [0, 256, 512]
+        vals[:, 48] = [0, 0, 10000]
         vals[:, 49] = [0, 0, 20000]
         write_fap(tmp_path / "t.fap", FapAnimation("t", 25.0, np.arange(n), vals, np.full((n, 4), np.nan),
                                                    np.full((n, 6), np.nan)))
+        sc.frame_set(1)
+        rest = np.array(root.matrix_world @ Vector(tpl_head_pivot()))
         assert bpy.ops.headadapt.import_fap(filepath=str(tmp_path / "t.fap")) == {"FINISHED"}
         sc.frame_set(3)
+        # the head turns about its pivot (FDP 7.1, the top of the spine), which stays put
+        assert np.allclose(np.array(root.matrix_world @ Vector(tpl_head_pivot())), rest, atol=1e-5)
+        assert root.rotation_euler[0] == pytest.approx(0.1, abs=1e-5)
         info = json.loads(skin["headadapt_keys"])
         assert kb["open_jaw"].value == pytest.approx(512 / info["open_jaw"]["fap_units"], rel=1e-4)
         assert root.rotation_euler[2] == pytest.approx(0.2, abs=1e-5)

@@ -18,6 +18,7 @@ import sys
 import tomllib
 import zipfile
 
+import numpy as np
 import pytest
 
 ROOT = pathlib.Path(__file__).resolve().parents[2]
@@ -108,6 +109,9 @@ with bpy.context.temp_override(window=win, screen=win.screen, area=area):
     steps["calibrate"] = bpy.ops.headadapt.calibrate()
     steps["adapt"] = bpy.ops.headadapt.adapt()
     steps["bake_expressions"] = bpy.ops.headadapt.bake_expressions(sets={"expression"})
+    steps["load_sample_scan"] = bpy.ops.headadapt.load_sample_scan()       # the shipped scan, from the zip
+    sample_scan = [bpy.context.scene.headadapt.scan.name, len(bpy.context.scene.headadapt.scan.data.vertices)]
+    bpy.context.scene.headadapt.scan = scan
     steps["save"] = bpy.ops.wm.save_as_mainfile(filepath=blend)
 scipy_files = sorted({m.__file__ for name, m in list(sys.modules.items())
                       if (name == "scipy" or name.startswith("scipy.")) and getattr(m, "__file__", None)})
@@ -127,6 +131,7 @@ print(RESULT_MARK + json.dumps({
     "site_before_interpreter": [p for p in sys.path if p.endswith("site-packages")][:1] == [site],
     "site_dist_info": sorted(n for n in installed if n.endswith(".dist-info")),
     "scan_counts": scan_counts,
+    "sample_scan": sample_scan,
     "reader_files": [plyfile.__file__, trimesh.__file__],
     "scipy_file": scipy.__file__,
     "scipy_version": scipy.__version__,
@@ -261,7 +266,7 @@ def test_linux_zip_installs_registers_and_runs_the_workflow_in_a_clean_user_conf
     assert str(user_dir) in installed["repo_dir"]
     assert "HEADADAPT_PT_template" in installed["panels"], installed["panels"]
     expected = _expected_operators()
-    assert len(expected) == 12 and sorted(installed["operators"]) == expected, installed["operators"]
+    assert len(expected) == 14 and sorted(installed["operators"]) == expected, installed["operators"]
     # each one is the installed copy's class, not the source tree's
     assert all(module.startswith(EXT_MODULE + ".") for module in installed["operators"].values()), installed["operators"]
 
@@ -283,8 +288,75 @@ def test_linux_zip_installs_registers_and_runs_the_workflow_in_a_clean_user_conf
 
     assert restarted["steps"] == {step: ["FINISHED"] for step in (
         "read_userpref", "add_template", "ply_import", "use_active_as_scan", "import_landmarks", "calibrate", "adapt",
-        "bake_expressions", "save", "open")}, log
-    assert restarted["result_root"] == "HA Adapted head"
+        "bake_expressions", "load_sample_scan", "save", "open")}, log
+    assert restarted["sample_scan"] == ["sample scan", 32918]
+    assert restarted["result_root"] == "scan adapted"          # named after the scan object
     assert {"Basis", "joy", "surprise"} <= set(restarted["skin_keys"]) and "viseme_A" not in restarted["skin_keys"]
     assert restarted["levels"] > 1 and restarted["best_rms_mm"] < 1.0 and restarted["outcome_ok"], restarted
     assert restarted["uninstall"] == ["FINISHED"] and not restarted["still_installed"], log
+
+
+# Issue 17, done when: the real scans through the installed extension's operators. Each scan and its
+# landmark file are read as the batch reads them (the installed meshio), made a mesh object, its
+# landmarks set as the picker sets them, then Calibrate and Adapt; the adapted skin (world, scan
+# frame) goes to an .npy per scan for the parent to compare with the batch's.
+REAL_SCANS = """
+import importlib, json, os, sys
+import bpy
+import numpy as np
+bpy.ops.wm.read_userpref()
+meshio = importlib.import_module(EXT_MODULE + ".headadapt_addon.core.meshio")
+bridge = importlib.import_module(EXT_MODULE + ".headadapt_addon.blender.bridge")
+landmarks = importlib.import_module(EXT_MODULE + ".headadapt_addon.blender.landmarks")
+out_dir, jobs = sys.argv[1], json.loads(sys.argv[2])
+done = {}
+for name, (scan_path, marks_path) in jobs.items():
+    bpy.ops.wm.read_homefile(use_empty=False)
+    for obj in list(bpy.data.objects):
+        bpy.data.objects.remove(obj)
+    win = bpy.context.window_manager.windows[0]
+    area = next(a for a in win.screen.areas if a.type == "VIEW_3D")
+    verts, tris = meshio.read_mesh(scan_path)[:2]
+    points, _meta = meshio.read_landmark_file(marks_path)
+    with bpy.context.temp_override(window=win, screen=win.screen, area=area):
+        obj = bpy.data.objects.new(name, bridge.new_mesh(name, verts, tris))
+        bpy.context.scene.collection.objects.link(obj)
+        bpy.context.view_layer.objects.active = obj
+        steps = {"use_active_as_scan": sorted(bpy.ops.headadapt.use_active_as_scan())}
+        landmarks.set_landmarks(obj, points)
+        steps["calibrate"] = sorted(bpy.ops.headadapt.calibrate())
+        steps["adapt"] = sorted(bpy.ops.headadapt.adapt())
+        skin = bpy.data.objects[name + " skin"]
+        np.save(os.path.join(out_dir, name + ".npy"), bridge.mesh_arrays(skin, world=True)[0])
+        report = json.loads(bpy.context.scene.headadapt.report_json)
+    done[name] = {"steps": steps, "best_level": report["best_level"]}
+print(RESULT_MARK + json.dumps(done))
+"""
+
+
+@pytest.mark.slow
+def test_installed_extension_adapts_every_real_scan_as_the_batch(linux_zip, tmp_path, shared_scans, tpl):
+    from headadapt_addon import batch
+    from headadapt_addon.core import adapt, anatomy, meshio
+
+    data = ROOT / "headless_tests" / "data"
+    jobs = {"demosthenes": ("demosthenes/demosthenes-low-res.obj", "demosthenes_fdps.json"),
+            "fran": ("fran_cyberware/fran_cut.obj", "fran_fdps.json"),
+            "nefertiti": ("nefertiti/nefertiti-lowres.obj", "nefertiti_fdps.json"),
+            "headsq_ct": ("headsq_ct/headsq_skin.obj", "headsq_ct_fdps.json")}
+    jobs = {k: (str(shared_scans / scan), str(data / marks)) for k, (scan, marks) in jobs.items()}
+    user_dir = tmp_path / "blender-user"
+    installed, log = _run_blender(INSTALL, [linux_zip], user_dir, tmp_path)
+    assert installed["enabled"], log
+    done, log = _run_blender(REAL_SCANS, [tmp_path, json.dumps(jobs)], user_dir, tmp_path)
+    for name, (scan, marks) in jobs.items():
+        assert done[name]["steps"] == {s: ["FINISHED"] for s in ("use_active_as_scan", "calibrate", "adapt")}, log
+        verts, tris = meshio.read_mesh(scan)[:2]
+        points, _meta = meshio.read_landmark_file(marks)
+        # the batch's fit (its rounding, its options), carried through the anatomy as the panels' result is
+        result = adapt.adapt(tpl, batch.as_blender_stores(verts), tris, points, batch.adapt_options())
+        want = result.to_scan(anatomy.transfer(tpl, result).parts["skin"])
+        got = np.load(tmp_path / f"{name}.npy")
+        size = float(np.ptp(verts, axis=0).max())
+        assert done[name]["best_level"] == result.best_level
+        assert float(np.abs(got - want).max()) < 1e-6 * size, (name, float(np.abs(got - want).max()), size)

@@ -1,0 +1,142 @@
+"""The worker-thread machinery of the long operators (Adapt, Bake): a Job runs core work (numpy, no
+bpy) on a thread, a Run pairs that work with what to write to the scene when it is done, Modal gives an
+operator invoke (from a button: a timer shows progress, Esc cancels) and execute (bpy.ops: waited for).
+Nothing is written to the scene before the work is done, so a cancel leaves the scene as it was.
+"""
+
+from ..core.exceptions import HeadAdaptError
+
+
+def show_progress(context, fraction, message):
+    """Progress of a long operator: the window manager's bar (cursor), the status bar's text, and the
+    scene setting progress_text the panels (and tests) read."""
+    context.window_manager.progress_update(int(100 * fraction))
+    text = f"HeadAdapt: {100 * fraction:.0f}% {message}" if message else ""
+    context.scene.headadapt.progress_text = text
+    if context.workspace is not None:
+        context.workspace.status_text_set(text or None)
+
+
+class Cancelled(Exception):
+    """Raised inside a Job's work at its next progress step after cancel()."""
+
+
+class Job:
+    """A core computation (numpy, no bpy) on a worker thread, so Blender's window stays responsive:
+    work(say) -> value, where say(fraction, message) reports progress and, after cancel(), stops the
+    work at its next step (Cancelled). Nothing in the scene changes until the caller uses .value."""
+
+    def __init__(self, work):
+        import threading
+        self.fraction, self.message, self.value, self.error = 0.0, "starting", None, None
+        self._cancel = threading.Event()
+        self._thread = threading.Thread(target=self._run, args=(work,), daemon=True)
+
+    def start(self):
+        self._thread.start()
+        return self
+
+    def _say(self, fraction, message):
+        if self._cancel.is_set():
+            raise Cancelled
+        self.fraction, self.message = fraction, message
+
+    def _run(self, work):
+        try:
+            self.value = work(self._say)
+        except BaseException as exc:       # handed to the main thread, which reports it
+            self.error = exc
+
+    def cancel(self):
+        self._cancel.set()
+
+    @property
+    def done(self):
+        return not self._thread.is_alive()
+
+    def wait(self, seconds=None):
+        self._thread.join(seconds)
+        return self.done
+
+
+class Run:
+    """A long operator's run (a subclass gives work and job, and finish): self.work(say) (numpy only) on a Job, self.finish(context, value, report)
+    in the main thread when it is done. The modal operator feeds it its events (step); Esc cancels
+    and leaves the scene as it was (nothing is written to the scene before finish)."""
+    what = "the work"
+
+    def step(self, context, event_type, report):
+        """Handle one event: ESC cancels, TIMER shows progress and finishes when the job is done;
+        returns the operator's answer. report(kind set, text) as Operator.report."""
+        if event_type == "ESC":
+            self.job.cancel()
+            self.end(context)
+            report({"WARNING"}, f"{self.what} cancelled: the scene is as it was")
+            return {"CANCELLED"}
+        if event_type != "TIMER":
+            return {"PASS_THROUGH"}
+        if not self.job.done:
+            show_progress(context, self.job.fraction, self.job.message)
+            return {"RUNNING_MODAL"}
+        if self.job.error is not None:
+            self.end(context)
+            if isinstance(self.job.error, HeadAdaptError):
+                report({"ERROR"}, str(self.job.error))
+                return {"CANCELLED"}
+            raise self.job.error
+        try:
+            return self.finish(context, self.job.value, report)
+        finally:
+            self.end(context)
+
+    def run_here(self, context, report):
+        """The same work in the calling thread, waited for (bpy.ops from scripts and tests)."""
+        context.window_manager.progress_begin(0, 100)
+        try:
+            value = self.work(lambda f, msg: show_progress(context, f, msg))
+        except HeadAdaptError as exc:
+            self.end(context)
+            report({"ERROR"}, str(exc))
+            return {"CANCELLED"}
+        try:
+            return self.finish(context, value, report)
+        finally:
+            self.end(context)
+
+    def end(self, context):
+        context.window_manager.progress_end()
+        context.scene.headadapt.progress_text = ""
+        if context.workspace is not None:
+            context.workspace.status_text_set(None)
+
+
+class Modal:
+    """invoke/modal of an operator whose make_run(context) gives a Run (or a problem string)."""
+
+    def invoke(self, context, _event):
+        """From a button: the work on a thread, progress and Esc through a timer."""
+        if context.window is None:
+            return self.execute(context)
+        run = self.make_run(context)
+        if isinstance(run, str):
+            return self.fail(run)
+        self._run = run
+        wm = context.window_manager
+        wm.progress_begin(0, 100)
+        self._timer = wm.event_timer_add(0.25, window=context.window)
+        wm.modal_handler_add(self)
+        run.job.start()
+        return {"RUNNING_MODAL"}
+
+    def modal(self, context, event):
+        answer = self._run.step(context, event.type, self.report)
+        if answer & {"FINISHED", "CANCELLED"}:
+            context.window_manager.event_timer_remove(self._timer)
+        return answer
+
+    def execute(self, context):
+        """From Python (bpy.ops, scripts): the same work, waited for."""
+        run = self.make_run(context)
+        if isinstance(run, str):
+            return self.fail(run)
+        return run.run_here(context, self.report)

@@ -1,0 +1,726 @@
+"""Issue 17, the artist's session: the panels accept what the batch accepts and say why a button is
+greyed; one options object for both; the Report table read row by row; progress while working;
+Adapt replaces its last result; the batch's .blend is recognised; bad landmarks refused."""
+import json
+
+import numpy as np
+import pytest
+
+import headadapt_addon
+from headadapt_addon.batch import SAMPLE_DIR
+from headadapt_addon.core import meshio
+
+
+@pytest.fixture
+def ui_scene():
+    """Factory startup (with a window and a 3D view), the add-on registered; yields an override dict."""
+    import bpy
+
+    bpy.ops.wm.read_homefile(use_empty=False, use_factory_startup=True)
+    for obj in list(bpy.data.objects):
+        bpy.data.objects.remove(obj)
+    headadapt_addon.register()
+    win = bpy.context.window_manager.windows[0]
+    area = next(a for a in win.screen.areas if a.type == "VIEW_3D")
+    yield {"window": win, "screen": win.screen, "area": area}
+    headadapt_addon.unregister()
+
+
+def _sample_scan(name="scan"):
+    import bpy
+
+    from headadapt_addon.blender import bridge
+
+    v, t = meshio.read_mesh(SAMPLE_DIR / "scan.ply")
+    obj = bpy.data.objects.new(name, bridge.new_mesh(name, v, t))
+    bpy.context.scene.collection.objects.link(obj)
+    bpy.context.scene.headadapt.scan = obj
+    return obj
+
+
+def _greyed_because(op):
+    """The poll message of a greyed operator (bpy.ops raises it), or None when it can run."""
+    if op.poll():
+        return None
+    with pytest.raises(RuntimeError) as err:
+        op()
+    return str(err.value).split("poll()", 1)[1].strip()
+
+
+def test_buttons_enable_on_the_batch_minimum_and_say_why_when_greyed(ui_scene):
+    import bpy
+
+    from headadapt_addon.blender import landmarks
+    from headadapt_addon.core import mpeg4
+
+    ops = bpy.ops.headadapt
+    with bpy.context.temp_override(**ui_scene):
+        for op in (ops.calibrate, ops.suggest_landmarks, ops.adapt):
+            assert "no scan selected" in _greyed_because(op).lower()
+        assert "no suggestions yet" in _greyed_because(ops.accept_suggestions).lower()
+        assert "no head in the scene" in _greyed_because(ops.import_fap).lower()
+        assert "no head in the scene" in _greyed_because(ops.bake_expressions).lower()
+        scan = _sample_scan()
+        assert "no landmarks on 'scan'" in _greyed_because(ops.adapt).lower()
+        assert "no landmarks on the scan to export" in _greyed_because(ops.export_landmarks).lower()
+        clicks = meshio.read_landmarks(SAMPLE_DIR / "landmarks.json")
+        # three clicks: the batch's minimum is four (calibration.MIN_FDPS)
+        landmarks.set_landmarks(scan, {k: clicks[k] for k in ("3.7", "3.12", "9.3")})
+        for op in (ops.calibrate, ops.suggest_landmarks, ops.adapt):
+            assert "at least 4" in _greyed_because(op), op
+        # the 8 front clicks, none of the paper's ear or hairline FDPs: as the batch, all three run
+        landmarks.set_landmarks(scan, {k: clicks[k] for k in mpeg4.CLICKS_8})
+        assert not set(mpeg4.CLICKS_8) >= set(mpeg4.CALIBRATION_FDPS)
+        for op in (ops.calibrate, ops.suggest_landmarks, ops.adapt):
+            assert _greyed_because(op) is None, op
+        # the paper's method does need its 8: the message names them and the way out
+        bpy.context.scene.headadapt.calibration = "paper"
+        why = _greyed_because(ops.adapt)
+        assert "paper's calibration needs FDP 2.1" in why and "10.9" in why and "Least squares" in why
+        bpy.context.scene.headadapt.calibration = "auto"
+        # a NaN that got into the stored landmarks: greyed, the FDP named
+        bad = {k: clicks[k] for k in mpeg4.CLICKS_8}
+        bad["9.3"] = np.array([np.nan, 0.0, 0.0])
+        landmarks.set_landmarks(scan, bad)
+        assert "FDP 9.3" in _greyed_because(ops.adapt) and "NaN" in _greyed_because(ops.calibrate)
+        # one spot clicked twice
+        landmarks.set_landmarks(scan, {**{k: clicks[k] for k in mpeg4.CLICKS_8}, "9.15": clicks["9.3"]})
+        assert "same spot" in _greyed_because(ops.adapt)
+
+
+def test_the_panels_and_the_batch_build_the_same_options(ui_scene):
+    import bpy
+
+    from headadapt_addon import batch
+    from headadapt_addon.core.adapt import AdaptOptions
+    from headadapt_addon.ui import operators
+
+    s = bpy.context.scene.headadapt
+    assert operators.adapt_options(s) == batch.adapt_options() == AdaptOptions()
+    s.max_levels, s.calibration, s.drop_flagged = 2, "umeyama", False
+    assert operators.adapt_options(s) == batch.adapt_options(2, "umeyama", keep_flagged=True)
+    assert operators.adapt_options(s, levels=0).max_levels == 0
+
+
+def test_landmark_file_with_nan_is_refused_by_the_operator(ui_scene, tmp_path):
+    import bpy
+
+    from headadapt_addon.blender import landmarks
+
+    with bpy.context.temp_override(**ui_scene):
+        scan = _sample_scan()
+        landmarks.set_landmarks(scan, {"3.7": [1.0, 2.0, 3.0]})
+        path = tmp_path / "nan.json"
+        path.write_text('{"points": {"3.7": [NaN, 0, 0], "3.12": [1, 2, 3], "9.3": [0, 1, 0], "2.10": [0, 0, 1]}}')
+        with pytest.raises(RuntimeError, match=r"nan.json: cannot read landmarks \(NaN is not a number\)"):
+            bpy.ops.headadapt.import_landmarks(filepath=str(path))
+        assert list(landmarks.get_landmarks(scan)) == ["3.7"]          # unchanged
+
+
+def test_calibrate_names_a_unit_error_and_wrong_names(ui_scene):
+    import bpy
+
+    from headadapt_addon.blender import landmarks
+
+    clicks = meshio.read_landmarks(SAMPLE_DIR / "landmarks.json")
+    with bpy.context.temp_override(**ui_scene):
+        scan = _sample_scan()
+        s = bpy.context.scene.headadapt
+        # the clicks in cm on a scan in mm: the calibration alone fits them (a similarity finds any
+        # scale), but they are not on the scan; refused, the unit named, no tick
+        landmarks.set_landmarks(scan, {k: v / 10.0 for k, v in clicks.items()})
+        with pytest.raises(RuntimeError, match="another unit"):
+            bpy.ops.headadapt.calibrate()
+        assert s.calibration_rms_mm < 0 and "headadapt_calibration" not in scan
+        # FDPs given each other's names (nose tip and chin, eye and mouth corners): judged against the
+        # head's width, refused
+        wrong = dict(clicks)
+        for a, b in (("9.3", "2.10"), ("3.7", "8.4"), ("3.12", "8.3")):
+            wrong[a], wrong[b] = clicks[b], clicks[a]
+        landmarks.set_landmarks(scan, {k: wrong[k] for k in ("9.3", "2.10", "3.7", "8.4", "3.12", "8.3",
+                                                             "3.11", "3.8")})
+        with pytest.raises(RuntimeError, match="head's width.*wrong names"):
+            bpy.ops.headadapt.calibrate()
+        assert s.calibration_rms_mm < 0
+        # the right clicks: a tick, the RMS a small part of the head's width
+        landmarks.set_landmarks(scan, clicks)
+        assert bpy.ops.headadapt.calibrate() == {"FINISHED"}
+        assert 0 <= s.calibration_rms_mm < 10 and "headadapt_calibration" in scan
+
+
+def test_a_blend_written_by_the_batch_is_recognised(ui_scene):
+    """The batch does not register the add-on: its .blend has no scene settings, only tagged objects."""
+    import bpy
+
+    from headadapt_addon.blender import scene
+    from headadapt_addon.core.template import bundled_template
+
+    with bpy.context.temp_override(**ui_scene):
+        assert not bpy.ops.headadapt.import_fap.poll()
+        root = scene.add_template(bundled_template(), bpy.context.scene.collection, name="HA Adapted head")
+        root["headadapt_part"] = "result_root"           # as blendout.build_result_objects tags it
+        assert bpy.context.scene.headadapt.result_root is None
+        assert scene.head_root(bpy.context) == root
+        assert bpy.ops.headadapt.import_fap.poll() and bpy.ops.headadapt.bake_expressions.poll()
+
+
+class _Layout:
+    """A stand-in UILayout that keeps its structure: rows, columns and boxes are children."""
+
+    def __init__(self, kind="layout"):
+        self.kind, self.children, self.enabled = kind, [], True
+
+    def _child(self, kind):
+        node = _Layout(kind)
+        self.children.append(node)
+        return node
+
+    def row(self, **_kw):
+        return self._child("row")
+
+    def column(self, **_kw):
+        return self._child("column")
+
+    def box(self, **_kw):
+        return self._child("box")
+
+    def grid_flow(self, **_kw):
+        return self._child("grid")
+
+    def label(self, text="", icon=None, **_kw):
+        self.children.append(("label", text, icon))
+
+    def operator(self, *_a, **_kw):
+        return type("OpProps", (), {})()
+
+    def prop(self, *_a, **_kw):
+        pass
+
+    def template_icon(self, icon_value=0, **_kw):
+        self.children.append(("icon", f"icon {icon_value}", icon_value))
+
+    def rows(self):
+        """[[label text, ...] per row] anywhere under this layout, in drawing order."""
+        out = []
+        for child in self.children:
+            if isinstance(child, _Layout):
+                if child.kind == "row":
+                    out.append([c[1] for c in child.children if isinstance(c, tuple)])
+                out += child.rows()
+        return out
+
+    def labels(self):
+        out = []
+        for child in self.children:
+            out += child.labels() if isinstance(child, _Layout) else [child[1:]]
+        return out
+
+
+def test_report_table_reads_row_by_row_with_units(ui_scene):
+    import bpy
+
+    from headadapt_addon.ui import panels
+
+    rep = {"levels": [{"level": 0, "pairs": 74, "E_d": 7.1, "E_d_rms_mm": 2.61, "E_m": 3.2, "E": 7.13,
+                       "seconds": 0.52},
+                      {"level": 1, "pairs": 912, "E_d": 0.4, "E_d_rms_mm": 0.61, "E_m": 1.1, "E": 0.411,
+                       "seconds": 2.04}],
+           "best_level": 1, "stopped_because": "last level reached", "flagged_fdps": {"5.1": "far off"},
+           "dropped_fdps": ["5.1"],
+           "outcome": {"folds_left": 0, "seen_rms_mm": 0.6, "seen_vertices": 2000, "marker_rms_mm": 1.05,
+                       "warnings": [], "ok": True}}
+    bpy.context.scene.headadapt.report_json = json.dumps(rep)
+    layout = _Layout()
+    panels.draw_report(layout, bpy.context)
+    rows = layout.rows()
+    assert rows[0] == ["Level", "Pairs", "E_d mm²", "RMS mm", "E_m mm²", "E mm²", "Time s"]
+    assert rows[1] == ["0", "74", "7.100", "2.61", "3.20", "7.130", "0.5"]
+    assert rows[2] == ["1*", "912", "0.400", "0.61", "1.10", "0.411", "2.0"]      # the best level starred
+    texts = [t for t, _icon in layout.labels()]
+    assert ("Dropped clicks: 5.1", "X") in layout.labels()
+    assert "marker RMS 1.05 mm" in texts                                  # the held-out markers' error
+    # no markers given: no E_m column; nothing dropped
+    for lv in rep["levels"]:
+        lv["E_m"] = None
+    rep["dropped_fdps"], rep["outcome"]["marker_rms_mm"] = [], None
+    bpy.context.scene.headadapt.report_json = json.dumps(rep)
+    layout = _Layout()
+    panels.draw_report(layout, bpy.context)
+    assert layout.rows()[0] == ["Level", "Pairs", "E_d mm²", "RMS mm", "E mm²", "Time s"]
+    assert all(len(r) == 6 for r in layout.rows())
+    assert ("Dropped clicks: none", "CHECKMARK") in layout.labels()
+
+
+@pytest.mark.slow
+def test_adapt_reports_progress_and_replaces_its_last_result(ui_scene, monkeypatch):
+    import bpy
+
+    from headadapt_addon.blender import landmarks
+    from headadapt_addon.ui import jobs
+
+    seen = []
+    original = jobs.show_progress
+
+    def record(context, fraction, message):
+        original(context, fraction, message)
+        seen.append((fraction, message, context.scene.headadapt.progress_text))
+
+    monkeypatch.setattr(jobs, "show_progress", record)
+    with bpy.context.temp_override(**ui_scene):
+        scan = _sample_scan("Anna")
+        landmarks.set_landmarks(scan, meshio.read_landmarks(SAMPLE_DIR / "landmarks.json"))
+        assert bpy.ops.headadapt.adapt(levels=1) == {"FINISHED"}
+        # progress: rising fractions, each shown as the status text while it runs, cleared after
+        fractions = [f for f, _m, _t in seen]
+        assert len(seen) >= 4 and fractions == sorted(fractions) and fractions[-1] == 1.0
+        assert any("level 1" in m for _f, m, _t in seen)
+        assert all(t.startswith("HeadAdapt: ") and m in t for _f, m, t in seen)
+        assert bpy.context.scene.headadapt.progress_text == ""
+        root = bpy.context.scene.headadapt.result_root
+        assert root.name == "Anna adapted"
+        names = {o.name for o in root.children_recursive}
+        assert {"Anna skin", "Anna cranium", "Anna mandible"} <= names
+        n_objects, n_meshes = len(bpy.data.objects), len(bpy.data.meshes)
+        # again: the last result is replaced, same names, nothing piles up
+        assert bpy.ops.headadapt.adapt(levels=0) == {"FINISHED"}
+        assert (len(bpy.data.objects), len(bpy.data.meshes)) == (n_objects, n_meshes)
+        assert bpy.context.scene.headadapt.result_root.name == "Anna adapted"
+        assert "Anna skin" in bpy.data.objects and "Anna skin.001" not in bpy.data.objects
+        assert len([c for c in bpy.data.collections if c.name.startswith("HeadAdapt result")]) == 1
+        # keep earlier results: a second hierarchy beside the first
+        bpy.context.scene.headadapt.keep_results = True
+        assert bpy.ops.headadapt.adapt(levels=0) == {"FINISHED"}
+        assert len(bpy.data.objects) == 2 * n_objects - 1                 # the scan once
+
+
+@pytest.mark.slow
+def test_adapt_from_a_button_works_on_a_thread_and_esc_leaves_the_scene_as_it_was(ui_scene):
+    """The button's modal path with stand-in events: a timer shows progress, Esc cancels."""
+    import time
+    from types import SimpleNamespace
+
+    import bpy
+
+    from headadapt_addon.blender import landmarks
+    from headadapt_addon.ui import jobs, operators
+
+    with bpy.context.temp_override(**ui_scene):
+        ctx, wm, s = bpy.context, bpy.context.window_manager, bpy.context.scene.headadapt
+        scan = _sample_scan()
+        landmarks.set_landmarks(scan, meshio.read_landmarks(SAMPLE_DIR / "landmarks.json"))
+        before = sorted(o.name for o in bpy.data.objects)
+        reports = []
+
+        def start(levels):
+            run = operators.AdaptRun(ctx, levels)
+            op = SimpleNamespace(_run=run, _timer=wm.event_timer_add(0.25, window=ctx.window),
+                                 report=lambda kind, text: reports.append((kind, text)))
+            wm.progress_begin(0, 100)
+            run.job.start()
+            return op, lambda kind: operators.HEADADAPT_OT_adapt.modal(op, ctx, SimpleNamespace(type=kind))
+
+        op, event = start(3)
+        assert event("MOUSEMOVE") == {"PASS_THROUGH"}             # the viewport stays usable
+        deadline = time.time() + 60
+        while not s.progress_text and time.time() < deadline:
+            assert event("TIMER") == {"RUNNING_MODAL"}
+            time.sleep(0.02)
+        assert s.progress_text.startswith("HeadAdapt: ")
+        assert event("ESC") == {"CANCELLED"}
+        assert op._run.job.wait(60) and isinstance(op._run.job.error, jobs.Cancelled)
+        assert sorted(o.name for o in bpy.data.objects) == before and s.result_root is None
+        assert s.progress_text == "" and s.report_json == ""
+        assert reports[-1] == ({"WARNING"}, "Adapt cancelled: the scene is as it was")
+        # left to run, the same path ends with the result
+        op, event = start(1)
+        deadline = time.time() + 120
+        while (answer := event("TIMER")) == {"RUNNING_MODAL"} and time.time() < deadline:
+            time.sleep(0.05)
+        assert answer == {"FINISHED"} and s.result_root.name == "scan adapted" and s.progress_text == ""
+        assert reports[-1][0] == {"INFO"} and reports[-1][1].startswith("adapted: best level")
+
+
+@pytest.mark.slow
+def test_bake_reports_progress_and_esc_leaves_no_shape_keys(ui_scene, monkeypatch):
+    import time
+    from types import SimpleNamespace
+
+    import bpy
+
+    from headadapt_addon.ui import jobs, operators
+
+    seen = []
+    original = jobs.show_progress
+
+    def record(context, fraction, message):
+        original(context, fraction, message)
+        seen.append((fraction, message, context.scene.headadapt.progress_text))
+
+    monkeypatch.setattr(jobs, "show_progress", record)
+    with bpy.context.temp_override(**ui_scene):
+        ctx, wm, s = bpy.context, bpy.context.window_manager, bpy.context.scene.headadapt
+        assert bpy.ops.headadapt.add_template() == {"FINISHED"}
+        root = s.template_root
+        skin = next(o for o in root.children_recursive if o.get("headadapt_part") == "skin")
+        # from a button (modal, stand-in events): Esc while it bakes leaves no key behind
+        run = operators.BakeRun(root, ("expression",), True)
+        reports = []
+        op = SimpleNamespace(_run=run, _timer=wm.event_timer_add(0.25, window=ctx.window),
+                             report=lambda kind, text: reports.append((kind, text)))
+        wm.progress_begin(0, 100)
+        run.job.start()
+        deadline = time.time() + 120
+        while not s.progress_text.startswith("HeadAdapt: ") and time.time() < deadline:
+            assert operators.HEADADAPT_OT_bake_expressions.modal(op, ctx, SimpleNamespace(type="TIMER")) \
+                == {"RUNNING_MODAL"}
+            time.sleep(0.05)
+        assert operators.HEADADAPT_OT_bake_expressions.modal(op, ctx, SimpleNamespace(type="ESC")) == {"CANCELLED"}
+        assert run.job.wait(120) and isinstance(run.job.error, jobs.Cancelled)
+        assert skin.data.shape_keys is None and s.progress_text == ""
+        assert reports[-1] == ({"WARNING"}, "Bake cancelled: the scene is as it was")
+        # through bpy.ops: progress per key, rising to the end, each shown as the status text
+        seen.clear()
+        assert bpy.ops.headadapt.bake_expressions(sets={"expression"}) == {"FINISHED"}
+        fractions = [f for f, _m, _t in seen]
+        assert fractions == sorted(fractions) and fractions[-1] == 1.0
+        assert {"baking joy", "baking surprise"} <= {m for _f, m, _t in seen}
+        assert all(t.startswith("HeadAdapt: ") and m in t for _f, m, t in seen)
+        assert "joy" in skin.data.shape_keys.key_blocks and s.progress_text == ""
+
+
+def test_suggest_refuses_clicks_in_another_unit_or_under_wrong_names(ui_scene):
+    """Suggest the Rest judges the clicks as Calibrate does: the cause named, nothing suggested."""
+    import bpy
+
+    from headadapt_addon.blender import landmarks
+    from headadapt_addon.core import mpeg4
+
+    clicks = meshio.read_landmarks(SAMPLE_DIR / "landmarks.json")
+    eight = {k: clicks[k] for k in mpeg4.CLICKS_8}
+    with bpy.context.temp_override(**ui_scene):
+        scan = _sample_scan()
+        landmarks.set_landmarks(scan, {k: v / 10.0 for k, v in eight.items()})      # cm on a mm scan
+        with pytest.raises(RuntimeError, match="another unit"):
+            bpy.ops.headadapt.suggest_landmarks()
+        assert landmarks.SUGGESTED_PROP not in scan
+        wrong = dict(eight)
+        for a, b in (("9.3", "2.10"), ("3.7", "8.4"), ("3.12", "8.3")):
+            wrong[a], wrong[b] = eight[b], eight[a]
+        landmarks.set_landmarks(scan, wrong)
+        with pytest.raises(RuntimeError, match="wrong names"):
+            bpy.ops.headadapt.suggest_landmarks()
+        assert landmarks.SUGGESTED_PROP not in scan
+        landmarks.set_landmarks(scan, eight)
+        assert bpy.ops.headadapt.suggest_landmarks() == {"FINISHED"}
+        suggested = landmarks.get_landmarks(scan, landmarks.SUGGESTED_PROP)
+        assert len(suggested) > 40 and not set(suggested) & set(eight)
+
+
+@pytest.mark.slow
+def test_markers_and_the_head_turn_follow_the_adapted_head(ui_scene, tmp_path):
+    """Held-out marker objects sit on the adapted skin, not at the template's positions; a .fap's head
+    rotation turns the adapted head about its own head pivot (FDP 7.1), which stays where it is."""
+    import bpy
+    import mathutils
+
+    from headadapt_addon.blender import animation, landmarks, scene
+    from headadapt_addon.core import mpeg4
+    from headadapt_addon.core.fapfile import FapAnimation, write_fap
+    from headadapt_addon.core.template import bundled_template
+
+    tpl = bundled_template()
+    with bpy.context.temp_override(**ui_scene):
+        scan = _sample_scan()
+        landmarks.set_landmarks(scan, meshio.read_landmarks(SAMPLE_DIR / "landmarks.json"))
+        assert bpy.ops.headadapt.adapt(levels=1) == {"FINISHED"}
+        root = bpy.context.scene.headadapt.result_root
+        objs = scene.template_objects(root)
+        skin = objs["skin"]
+        skin_verts = np.array([v.co for v in skin.data.vertices])
+        moved = []
+        markers = [o for o in root.children_recursive if "headadapt_marker" in o]
+        assert len(markers) == len(tpl.meta["markers"])
+        for o in markers:
+            ref = tpl.meta["markers"][o["headadapt_marker"]]
+            on_skin = np.asarray(ref["bary"]) @ skin_verts[tpl.skin.tris[ref["face"]]]
+            assert np.allclose(np.array(o.location), on_skin, atol=1e-6), o.name
+            moved.append(np.linalg.norm(np.array(o.location) - tpl.marker_points()[o["headadapt_marker"]]))
+        assert max(moved) > 1e-3                            # the sample head is not the template's
+        # the head turns about the adapted head pivot (root frame), not about the root's origin
+        pivot = animation.head_pivot(root)
+        assert np.linalg.norm(pivot - np.asarray(tpl.meta["head_pivot"])) < 0.05
+        skin["headadapt_keys"] = json.dumps({"joy": {"kind": "expression", "parts": ["skin"], "fap_units": 0}})
+        n = 3
+        vals = np.full((n, mpeg4.N_FAPS + 1), np.nan)
+        vals[:, 48], vals[:, 49], vals[:, 50] = [0, 0, 20000], [0, 10000, 20000], [0, 0, -15000]
+        write_fap(tmp_path / "turn.fap", FapAnimation("turn", 25.0, np.arange(n), vals,
+                                                      np.full((n, 4), np.nan), np.full((n, 6), np.nan)))
+        bpy.context.scene.frame_set(1)
+        rest = root.matrix_world @ mathutils.Vector(pivot)
+        nose = next(o for o in root.children_recursive if o.get("headadapt_fdp") == "9.3")
+        nose_rest = nose.matrix_world.translation.copy()
+        pitch = root.rotation_euler[0]            # the root carries the scan's placement: turned from it
+        assert bpy.ops.headadapt.import_fap(filepath=str(tmp_path / "turn.fap")) == {"FINISHED"}
+        for frame in (1, 2, 3):
+            bpy.context.scene.frame_set(frame)
+            assert (root.matrix_world @ mathutils.Vector(pivot) - rest).length < 1e-4 * root.matrix_world.median_scale
+        assert root.rotation_euler[0] == pytest.approx(pitch + 0.2, abs=1e-5)
+        # the face turns: the nose tip moves by about its distance from the pivot times the angle
+        assert (nose.matrix_world.translation - nose_rest).length > 0.1 * (nose_rest - rest).length
+
+
+@pytest.mark.slow
+def test_the_result_is_worth_looking_at_without_setup(ui_scene):
+    """After Adapt: the heat map shown (Solid shading by the skin's colour attribute) with a legend in
+    mm beside the head and in the Display panel, the scan as wire, the helpers hidden (no dashed
+    relationship lines either); each toggle does what it says."""
+    import bpy
+
+    from headadapt_addon.blender import landmarks, view
+    from headadapt_addon.ui import panels
+
+    with bpy.context.temp_override(**ui_scene):
+        s = bpy.context.scene.headadapt
+        space = ui_scene["area"].spaces.active
+        assert (space.shading.color_type, space.overlay.show_relationship_lines) == ("MATERIAL", True)
+        # the template alone: its colours kept (no heat map to show), its helpers hidden
+        assert bpy.ops.headadapt.add_template() == {"FINISHED"}
+        assert space.shading.color_type == "MATERIAL"
+        assert all(o.hide_get() for o in s.template_root.children_recursive if "headadapt_fdp" in o)
+        scan = _sample_scan()
+        landmarks.set_landmarks(scan, meshio.read_landmarks(SAMPLE_DIR / "landmarks.json"))
+        assert bpy.ops.headadapt.adapt(levels=0) == {"FINISHED"}
+        root = s.result_root
+        skin = next(o for o in root.children_recursive if o.get("headadapt_part") == "skin")
+        assert skin.data.color_attributes.active_color.name == view.HEAT_ATTRIBUTE
+        assert (space.shading.type, space.shading.color_type) == ("SOLID", "VERTEX")
+        assert not space.overlay.show_relationship_lines
+        assert scan.display_type == "WIRE"
+        # the legend beside the head: a colour bar blue (0 mm) at the bottom to red (3 mm) at the top
+        bar = next(o for o in root.children_recursive if o.get("headadapt_part") == "legend")
+        colours = np.array([c.color[:] for c in bar.data.color_attributes[view.HEAT_ATTRIBUTE].data])
+        z = np.array([v.co.z for v in bar.data.vertices])
+        assert colours[z.argmin()][2] > 0.9 > colours[z.argmin()][0]          # blue
+        assert colours[z.argmax()][0] > 0.9 > colours[z.argmax()][2]          # red
+        labels = sorted(o.data.body for o in root.children_recursive if o.get("headadapt_part") == "legend_label")
+        assert labels == ["0 mm", "1.5 mm", "3 mm+", "distance to scan"]
+        # beside the head (on the viewer's left of the face: the template's -X), not on it
+        skin_x = min(v.co.x for v in skin.data.vertices)
+        assert max(v.co.x for v in bar.data.vertices) < skin_x
+        # the helpers hidden: 82 FDPs, the markers, 27 muscle curves
+        helpers = {k: [o for o in root.children_recursive if o.get("headadapt_part") in parts]
+                   for k, parts in view.HELPERS.items()}
+        assert len(helpers["fdps"]) == 83 and len(helpers["muscles"]) == 28
+        assert all(o.hide_get() and o.hide_render for group in helpers.values() for o in group)
+        # the Display panel: the toggles and the legend's values in mm
+        layout = _Layout()
+        panels.draw_display(layout, bpy.context)
+        assert ["0 mm", "1 mm", "1.5 mm", "3 mm+"] == [t for t, _i in layout.labels()][:4]
+        assert tuple(s.legend_0) == pytest.approx(view.heat_colours([0.0])[0, :3])
+        # toggles
+        s.show_fdps = True
+        assert all(not o.hide_get() for o in helpers["fdps"]) and all(o.hide_get() for o in helpers["muscles"])
+        s.show_muscles = True
+        assert all(not o.hide_get() for o in helpers["muscles"])
+        s.scan_as_wire = False
+        assert scan.display_type == "TEXTURED"
+        s.show_heat_map = False
+        assert space.shading.color_type == "MATERIAL"
+        s.show_heat_map = True
+        assert space.shading.color_type == "VERTEX"
+
+
+def test_fdp_labels_are_depth_tested_and_thinned(ui_scene):
+    """The picker's labels: a point round the back of the head is not labelled through it, and labels
+    closer than 14 px are thinned (the active FDP and the 8 clicks kept first)."""
+    import bpy
+
+    from headadapt_addon.blender import landmarks
+    from headadapt_addon.core import mpeg4
+
+    clicks = meshio.read_landmarks(SAMPLE_DIR / "landmarks.json")
+    with bpy.context.temp_override(**ui_scene):
+        scan = _sample_scan()
+        verts = np.array([v.co for v in scan.data.vertices])
+        centre = 0.5 * (verts.min(axis=0) + verts.max(axis=0))
+        size = float(np.ptp(verts, axis=0).max())
+        nose = clicks["9.3"]
+        ahead = (nose - centre) / np.linalg.norm(nose - centre)
+        pts = {"9.3": nose}
+        assert landmarks.seen_from(scan, pts, centre + 5 * size * ahead) == {"9.3": True}
+        assert landmarks.seen_from(scan, pts, centre - 5 * size * ahead) == {"9.3": False}     # from behind
+        # both eye corners seen from the front, neither from behind
+        eyes = {k: clicks[k] for k in ("3.7", "3.12")}
+        assert all(landmarks.seen_from(scan, eyes, centre + 5 * size * ahead).values())
+        assert not any(landmarks.seen_from(scan, eyes, centre - 5 * size * ahead).values())
+    # thinning: three labels on one spot keep one (the active first), a far one stays
+    spots = {"2.1": (100, 100), "9.3": (105, 103), "3.7": (300, 100), "8.3": (108, 98)}
+    assert landmarks.thinned(spots, first=("2.1",)) == ["2.1", "3.7"]
+    assert landmarks.thinned(spots) == ["3.7", "8.3"]      # the 8 clicks first, in their order: 8.3, not 2.1
+    assert set(mpeg4.CLICKS_8) >= {"3.7", "9.3"}
+    assert landmarks.thinned({k: (20.0 * i, 0.0) for i, k in enumerate(mpeg4.CLICKS_8)}) == list(mpeg4.CLICKS_8)
+
+
+@pytest.mark.slow
+def test_batch_preview_renders_front_and_side_with_the_heat_map(tmp_path):
+    """--preview out.png: one PNG, front and side beside each other (2 x 640 by 640), written atomically,
+    not blank: the heat map's blue and red are in it; a name that is not .png is refused (exit 2)."""
+    import struct
+    import subprocess
+    import sys
+
+    import bpy
+
+    png = tmp_path / "pics" / "preview.png"
+    cmd = [sys.executable, "-m", "headadapt_addon.batch", "adapt", "--scan", str(SAMPLE_DIR / "scan.ply"),
+           "--landmarks", str(SAMPLE_DIR / "landmarks.json"), "--out", str(tmp_path / "o"), "--levels", "1"]
+    proc = subprocess.run(cmd + ["--preview", str(png)], capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr
+    assert sorted(p.name for p in png.parent.iterdir()) == ["preview.png"]      # no temporary left behind
+    head = png.read_bytes()[:24]
+    assert head[:8] == b"\x89PNG\r\n\x1a\n" and struct.unpack(">II", head[16:24]) == (1280, 640)
+    img = bpy.data.images.load(str(png))
+    px = np.empty(1280 * 640 * 4, dtype=np.float32)
+    img.pixels.foreach_get(px)
+    bpy.data.images.remove(img)
+    rgb = px.reshape(640, 1280, 4)[..., :3]
+    blue = (rgb[..., 2] > 0.5) & (rgb[..., 0] < 0.25)
+    red = (rgb[..., 0] > 0.5) & (rgb[..., 2] < 0.25) & (rgb[..., 1] < 0.3)
+    for half in (slice(0, 640), slice(640, 1280)):            # the front view and the side view
+        assert blue[:, half].sum() > 500 and red[:, half].sum() > 100, (blue[:, half].sum(), red[:, half].sum())
+        assert rgb[:, half].std() > 0.05
+    bad = subprocess.run(cmd + ["--overwrite", "--preview", str(tmp_path / "p.jpg")], capture_output=True, text=True)
+    assert bad.returncode == 2 and bad.stderr.strip().count("\n") == 0 and "name a .png file" in bad.stderr
+
+
+def _view_region(ui_scene):
+    return next(r for r in ui_scene["area"].regions if r.type == "WINDOW")
+
+
+def test_the_picker_places_a_point_from_stand_in_events(ui_scene):
+    """The picker's modal() with stand-in events inside temp_override: a click over the nose tip puts
+    FDP 9.3 there and moves on along the guided order (the 8 clicks first); Ctrl-click removes it;
+    the wheel passes through; Esc ends."""
+    from types import SimpleNamespace
+
+    import bpy
+    from bpy_extras.view3d_utils import location_3d_to_region_2d
+    from mathutils import Matrix, Vector
+
+    from headadapt_addon.blender import landmarks
+    from headadapt_addon.core import mpeg4
+    from headadapt_addon.ui import picker
+
+    clicks = meshio.read_landmarks(SAMPLE_DIR / "landmarks.json")
+    region = _view_region(ui_scene)
+    with bpy.context.temp_override(**ui_scene, region=region):
+        ctx = bpy.context
+        scan = _sample_scan()
+        s = ctx.scene.headadapt
+        assert s.active_fdp == mpeg4.CLICKS_8[0]               # the guided order starts with the 8 clicks
+        verts = np.array([v.co for v in scan.data.vertices])
+        centre = 0.5 * (verts.min(axis=0) + verts.max(axis=0))
+        ahead = (clicks["9.3"] - centre) / np.linalg.norm(clicks["9.3"] - centre)
+        # the scan placed (scaled, turned) so the factory view looks at its nose (headless, the view's
+        # matrices are not recomputed: the view stays, the object moves; the picker works in world space)
+        rv3d = ctx.region_data
+        target = Vector(rv3d.view_location)
+        to_eye = (rv3d.view_matrix.inverted().translation - target).normalized()
+        turn = Vector(ahead).rotation_difference(to_eye).to_matrix().to_4x4()
+        scan.matrix_world = (Matrix.Translation(target) @ turn @ Matrix.Scale(0.01, 4)
+                             @ Matrix.Translation(-Vector(clicks["9.3"])))
+        ctx.view_layer.update()
+        nose_world = scan.matrix_world @ Vector(clicks["9.3"])
+        xy = location_3d_to_region_2d(region, rv3d, nose_world)
+        assert xy is not None and 0 < xy.x < region.width and 0 < xy.y < region.height
+        reports = []
+        op = SimpleNamespace(report=lambda kind, text: reports.append((kind, text)))
+        op.finish = lambda context: picker.HEADADAPT_OT_pick_landmarks.finish(op, context)
+
+        def event(kind, value="PRESS", ctrl=False):
+            e = SimpleNamespace(type=kind, value=value, ctrl=ctrl,
+                                mouse_region_x=int(round(xy.x)), mouse_region_y=int(round(xy.y)))
+            return picker.HEADADAPT_OT_pick_landmarks.modal(op, ctx, e)
+
+        s.active_fdp = "9.3"
+        assert event("WHEELUPMOUSE") == {"PASS_THROUGH"}
+        assert event("LEFTMOUSE") == {"RUNNING_MODAL"}
+        placed = landmarks.get_landmarks(scan)
+        assert list(placed) == ["9.3"]
+        size = float(np.ptp(verts, axis=0).max())
+        assert np.linalg.norm(placed["9.3"] - clicks["9.3"]) < 0.01 * size        # under the mouse, on the scan
+        hit = [(v.co - Vector(placed["9.3"])).length for v in scan.data.vertices]
+        assert min(hit) < 0.02 * size                                             # local coordinates, on it
+        assert s.active_fdp == "2.10"                            # the next of the 8 clicks after 9.3
+        assert event("LEFTMOUSE", ctrl=True) == {"RUNNING_MODAL"}
+        assert landmarks.get_landmarks(scan) == {} and reports[-1] == ({"INFO"}, "removed 9.3")
+        assert event("ESC") == {"FINISHED"}
+
+
+def test_landmarking_guides_the_8_clicks_first_and_suggestions_one_by_one(ui_scene):
+    """Load Sample Scan; the Landmarks panel lists the 8 clicks with the rest folded away; Suggest the
+    Rest, then each suggestion accepted or rejected on its own (or all at once)."""
+    import bpy
+
+    from headadapt_addon.blender import landmarks
+    from headadapt_addon.core import mpeg4
+    from headadapt_addon.ui import panels
+
+    clicks = meshio.read_landmarks(SAMPLE_DIR / "landmarks.json")
+    with bpy.context.temp_override(**ui_scene):
+        s = bpy.context.scene.headadapt
+        assert bpy.ops.headadapt.load_sample_scan() == {"FINISHED"}
+        scan = s.scan
+        assert scan.name == "sample scan" and len(scan.data.polygons) > 1000 and not landmarks.get_landmarks(scan)
+        layout = _Layout()
+        panels.draw_landmarks(layout, bpy.context)
+        texts = [t for t, _i in layout.labels()]
+        assert "The 8 clicks: 0 of 8" in texts
+        assert all(any(t.startswith(f"{k}  ") for t in texts) for k in mpeg4.CLICKS_8)
+        assert not any(t.startswith("2.1  ") for t in texts)                 # the rest folded away
+        # a picture of where the 8 clicks go, until they are placed
+        icons = [i for t, i in layout.labels() if t.startswith("icon ")]
+        picture = panels.reference_preview()
+        w, h = picture.image_size                          # the 360x400 picture, as a 256 px preview
+        assert h == 256 and abs(w / h - 360 / 400) < 0.01 and icons == [picture.icon_id]     # 0 without a GPU
+        s.show_all_fdps = True
+        layout = _Layout()
+        panels.draw_landmarks(layout, bpy.context)
+        assert sum(1 for t, _i in layout.labels() if "  " in t) == len(mpeg4.FDPS)
+        # the 8 clicks, then the suggestions
+        landmarks.set_landmarks(scan, {k: clicks[k] for k in mpeg4.CLICKS_8})
+        assert bpy.ops.headadapt.suggest_landmarks() == {"FINISHED"}
+        sug = landmarks.get_landmarks(scan, landmarks.SUGGESTED_PROP)
+        layout = _Layout()
+        panels.draw_landmarks(layout, bpy.context)
+        assert (f"{len(sug)} suggested", None) in layout.labels()
+        assert not [t for t, _i in layout.labels() if t.startswith("icon ")]      # the 8 placed: no picture
+        assert bpy.ops.headadapt.accept_suggestions(fdp="2.1") == {"FINISHED"}
+        assert bpy.ops.headadapt.reject_suggestions(fdp="11.1") == {"FINISHED"}
+        pts = landmarks.get_landmarks(scan)
+        left = landmarks.get_landmarks(scan, landmarks.SUGGESTED_PROP)
+        assert set(pts) == set(mpeg4.CLICKS_8) | {"2.1"} and np.array_equal(pts["2.1"], sug["2.1"])
+        assert set(left) == set(sug) - {"2.1", "11.1"}
+        with pytest.raises(RuntimeError, match="11.1 is not among the suggestions"):
+            bpy.ops.headadapt.accept_suggestions(fdp="11.1")
+        assert bpy.ops.headadapt.reject_suggestions() == {"FINISHED"}         # the rest rejected at once
+        assert landmarks.SUGGESTED_PROP not in scan and set(landmarks.get_landmarks(scan)) == set(pts)
+        # with its landmarks, the sample is ready to calibrate and adapt
+        assert bpy.ops.headadapt.load_sample_scan(with_landmarks=True) == {"FINISHED"}
+        assert s.scan.name == "sample scan.001" and len(landmarks.get_landmarks(s.scan)) == len(clicks)
+        assert bpy.ops.headadapt.calibrate() == {"FINISHED"}
+
+
+def test_every_icon_the_panels_name_is_one_of_blenders():
+    """The stand-in layouts accept any icon; Blender refuses an unknown one and the panel stops drawing
+    there (a real window showed it): every icon named in ui/ must be in Blender's list."""
+    import pathlib
+    import re
+
+    import bpy
+
+    known = set(bpy.types.UILayout.bl_rna.functions["prop"].parameters["icon"].enum_items.keys())
+    src = "".join(p.read_text() for p in (pathlib.Path(headadapt_addon.__file__).parent / "ui").glob("*.py"))
+    used = set(re.findall(r'icon="([A-Z0-9_]+)"', src)) | set(re.findall(r'"([A-Z0-9_]+)" if ', src))
+    used |= set(re.findall(r' else "([A-Z0-9_]+)"', src))
+    assert len(used) > 15 and used <= known, sorted(used - known)
