@@ -208,13 +208,19 @@ def test_batch_writes_a_blend_that_reopens_with_the_report(tmp_path):
              " len([o for o in root.children_recursive if o.type == 'MESH']));"
              "skin = next(o for o in root.children_recursive if o.get('headadapt_part') == 'skin');"
              "kb = skin.data.shape_keys.key_blocks; print('KEYS', len(kb), 'joy' in kb, 'open_jaw' in kb,"
-             " 'viseme_A' in kb, rep['bake']['keys'], bpy.context.scene.frame_end)")
+             " 'viseme_A' in kb, rep['bake']['keys'], bpy.context.scene.frame_end);"
+             "from headadapt_addon.core.skin import arkit;"
+             "eye = next(o for o in root.children_recursive if o.get('headadapt_part') == 'eye_l');"
+             "print('ARKIT', [u for u in arkit.UNITS if u not in kb], sorted(set(kb.keys()) & {u.lower() for u in arkit.UNITS}),"
+             " 'eyeLookUpLeft' in eye.data.shape_keys.key_blocks, 'eyeLookUpRight' in eye.data.shape_keys.key_blocks)")
     res = subprocess.run([sys.executable, "-c", check, str(out / "head.blend")], capture_output=True, text=True)
     assert "OK 2 True True 8" in res.stdout, res.stdout + res.stderr
     # shape keys: Basis + 6 expressions + 14 visemes + the skin FAPs; the preview action plays the six
     keys = res.stdout.split("KEYS")[1].split()
     assert int(keys[0]) > 1 + 6 + 14 + 40 and keys[1:4] == ["True", "True", "True"], res.stdout
     assert int(keys[5]) >= 6 * 30
+    # ARKit's 52, each under its exact name (none missing, none lowercased), the gaze turning the eye
+    assert "ARKIT [] [] True False" in res.stdout, res.stdout
 
 
 @pytest.mark.slow
@@ -228,11 +234,17 @@ def test_expressions_panel_bakes_the_template_and_imports_a_fap_file(ui_scene, t
         with pytest.raises(RuntimeError, match="poll"):
             bpy.ops.headadapt.bake_expressions()                      # no head yet: greyed out
         bpy.ops.headadapt.add_template()
-        assert bpy.ops.headadapt.bake_expressions(sets={"expression", "fap"}) == {"FINISHED"}
+        assert bpy.ops.headadapt.bake_expressions(sets={"expression", "fap", "arkit"}) == {"FINISHED"}
         root = bpy.context.scene.headadapt.template_root
         skin = next(o for o in root.children_recursive if o.get("headadapt_part") == "skin")
         kb = skin.data.shape_keys.key_blocks
         assert "joy" in kb and "open_jaw" in kb and "viseme_A" not in kb
+        from headadapt_addon.core.skin import arkit
+        assert [u for u in arkit.UNITS if u not in kb] == [] and len(arkit.UNITS) == 52   # ARKit's exact names
+        info = json.loads(skin["headadapt_keys"])
+        assert {n for n, k in info.items() if k["kind"] == "arkit"} == set(arkit.UNITS)
+        jaw = next(o for o in root.children_recursive if o.get("headadapt_part") == "mandible")
+        assert "jawOpen" in jaw.data.shape_keys.key_blocks
         jaw = next(o for o in root.children_recursive if o.get("headadapt_part") == "mandible")
         assert "open_jaw" in jaw.data.shape_keys.key_blocks          # the mandible follows the jaw
         # the preview plays the six expressions one after another
