@@ -34,11 +34,45 @@ BASIS = 0.5               # actuator fields sampled at half activation
 RIDGE = 0.02              # ridge on the activations, relative to the basis' mean column norm
 RESCALES = 3              # simulate-and-rescale rounds after the linear fit
 ACTIVE = 0.01             # activations under this are dropped (keeps the recipes short)
+NEWTON_STEPS, STEP = 2, 0.05    # Gauss-Newton steps on the simulation itself (kept while they help),
+                                # finite-difference step of an activation
 BAKED_COSINE = 0.7        # a unit not expressed is still baked (the nearest the model reaches) from this
                           # cosine; below it its key is neutral
 # Actuators held at a value (the rest fitted around them), the key baked whatever the fit reaches: a
 # blink closes the eye (issue 21), both lids as drive.BLINK (the upper lid alone leaves seed 3's eye open).
 PINNED = {"eyeBlinkLeft": drive.BLINK["eyeBlinkLeft"]}
+# The muscles FACS names for each unit (Left units; a midline unit takes both sides): a second fit over
+# these alone (the fit over every actuator can settle on a worse shape: the model is not linear).
+PRIMARY = {
+    "mouthSmileLeft": ("zygomaticus_major_l", "zygomaticus_minor_l", "risorius_l"),
+    "mouthFrownLeft": ("depressor_anguli_oris_l", "mentalis_l"),
+    "mouthStretchLeft": ("risorius_l", "depressor_anguli_oris_l", "buccinator_l"),
+    "mouthDimpleLeft": ("buccinator_l", "risorius_l"),
+    "mouthPressLeft": ("orbicularis_oris", "mentalis_l", "lip_push_lower"),
+    "mouthUpperUpLeft": ("levator_labii_superioris_l", "zygomaticus_minor_l"),
+    "mouthLowerDownLeft": ("depressor_labii_inferioris_l",),
+    "mouthLeft": ("zygomaticus_major_l", "risorius_l", "buccinator_l", "orbicularis_oris"),
+    "noseSneerLeft": ("levator_labii_superioris_l", "nasalis_l", "corrugator_l"),
+    "cheekSquintLeft": ("orbicularis_oculi_l", "zygomaticus_minor_l", "zygomaticus_major_l", "lower_lid_l"),
+    "eyeSquintLeft": ("orbicularis_oculi_l", "lower_lid_l"),
+    "eyeWideLeft": ("upper_lid_raise_l", "frontalis_inner_l", "frontalis_outer_l"),
+    "eyeLookUpLeft": ("upper_lid_raise_l", "lower_lid_l"),
+    "eyeLookDownLeft": ("upper_lid_l", "lower_lid_drop_l"),
+    "browDownLeft": ("corrugator_l", "orbicularis_oculi_l"),
+    "browOuterUpLeft": ("frontalis_outer_l",),
+    "browInnerUp": ("frontalis_inner_l",),
+    "jawOpen": ("jaw_open", "depressor_labii_inferioris_l"),
+    "jawForward": ("jaw_thrust",),
+    "jawLeft": ("jaw_shift_left",),
+    "mouthFunnel": ("orbicularis_oris", "lip_funnel", "lip_push_upper", "lip_push_lower", "jaw_open"),
+    "mouthPucker": ("orbicularis_oris", "lip_push_upper", "lip_push_lower", "lip_funnel"),
+    "mouthRollLower": ("orbicularis_oris", "mentalis_l"),
+    "mouthRollUpper": ("orbicularis_oris", "depressor_septi"),
+    "mouthShrugLower": ("mentalis_l", "lip_push_lower"),
+    "mouthShrugUpper": ("levator_labii_superioris_l", "lip_push_upper"),
+    "mouthClose": ("orbicularis_oris", "mentalis_l", "lip_push_lower"),
+    "cheekPuff": ("cheek_puff_l",),
+}
 WHY_NOT = {
     "tongueOut": "faceunits01's tongueOut moves no skin; the template's tongue is a rigid stand-in, "
                  "the key slides it forward",
@@ -63,6 +97,13 @@ def columns(acts, side):
     return cols
 
 
+def judge_field(d, r):
+    """Cosine of two flattened fields, less how far the magnitude ratio is from 1 beyond the table's band."""
+    nd, nr = np.linalg.norm(d), np.linalg.norm(r)
+    ratio = nd / max(nr, 1e-30)
+    return d @ r / max(nd * nr, 1e-30) - max(EXPRESSED_RATIO[0] - ratio, ratio - EXPRESSED_RATIO[1], 0.0)
+
+
 def judge(tpl, model, x, ref, vis):
     d = (x - tpl.skin.verts)[vis].ravel()
     r = ref[vis].ravel()
@@ -77,30 +118,63 @@ def in_bone(tpl, model, x, controls):
     return int((winding_numbers(x[moved], bone, tpl.skull_tris) > 0.5).sum()) if moved.any() else 0
 
 
-def fit_unit(tpl, model, unit, ref, basis, vis):
-    """The unit's activation: bounded linear least squares on the actuators' fields, simulated and
-    rescaled to the unit's magnitude."""
-    side = unit_side(unit)
-    pinned = PINNED.get(unit, {})
-    cols = columns([a for a in basis if a not in pinned and arkit.REVERSED.get(a, (a,))[0] not in pinned], side)
+def _fit(tpl, model, ref, basis, vis, allowed, side, pinned):
+    """Activations {actuator: a} of one candidate set: bounded linear least squares on the allowed
+    actuators' fields, Gauss-Newton steps on the simulation over those it uses, rescaled to the unit."""
+    cols = columns([a for a in allowed if a not in pinned and arkit.REVERSED.get(a, (a,))[0] not in pinned], side)
     B = np.column_stack([sum(basis[a] for a in c) for c in cols])
     ub = np.array([min(arkit.bound(a) for a in c) for c in cols])
     lam = RIDGE * np.linalg.norm(B, axis=0).mean()
-    A = np.vstack([B, lam * np.eye(len(cols))])
-    target = ref[vis].ravel()
+    r = ref[vis].ravel()
+    target = r
     if pinned:
-        target = target - ((model.equilibrium(arkit.to_controls(pinned)) - tpl.skin.verts)[vis]).ravel()
-    b = np.concatenate([target, np.zeros(len(cols))])
-    sol = lsq_linear(A, b, bounds=(0.0, ub), method="bvls").x
-    acts = pinned | {a: float(v) for c, v in zip(cols, sol) for a in c if v > ACTIVE}
+        target = r - ((model.equilibrium(arkit.to_controls(pinned)) - tpl.skin.verts)[vis]).ravel()
+    sol = lsq_linear(np.vstack([B, lam * np.eye(len(cols))]), np.concatenate([target, np.zeros(len(cols))]),
+                     bounds=(0.0, ub), method="bvls").x
+    keep = [i for i, v in enumerate(sol) if v > ACTIVE]
+    cols, ub, sol = [cols[i] for i in keep], ub[keep], sol[keep]
+
+    def acts_of(x):
+        return pinned | {a: float(v) for c, v in zip(cols, x) for a in c if v > ACTIVE}
+
+    def field(x):
+        return (model.equilibrium(arkit.to_controls(acts_of(x))) - tpl.skin.verts)[vis].ravel()
+
+    f0 = field(sol)
+    best = judge_field(f0, r)
+    for _ in range(NEWTON_STEPS if len(sol) else 0):      # Gauss-Newton on the simulation (bounded)
+        J = np.column_stack([(field(sol + STEP * e) - f0) / STEP for e in np.eye(len(sol))])
+        b = np.concatenate([r - f0 + J @ sol, np.zeros(len(sol))])
+        trial = lsq_linear(np.vstack([J, lam * np.eye(len(sol))]), b, bounds=(0.0, ub), method="bvls").x
+        f1 = field(trial)
+        if judge_field(f1, r) <= best:
+            break
+        sol, f0, best = trial, f1, judge_field(f1, r)
+    acts = acts_of(sol)
     for _ in range(RESCALES):
-        x = model.equilibrium(arkit.to_controls(acts))
-        cos, ratio = judge(tpl, model, x, ref, vis)
+        cos, ratio = judge(tpl, model, model.equilibrium(arkit.to_controls(acts)), ref, vis)
         if ratio <= 0 or abs(ratio - 1) < 0.02:
             break
         acts = {a: v if a in pinned else min(v / ratio, arkit.bound(a)) for a, v in acts.items()}
-    if pinned and judge(tpl, model, model.equilibrium(arkit.to_controls(pinned)), ref, vis)[0] > cos:
-        acts = dict(pinned)                  # the fit around the pinned ones is no nearer than them alone
+    return acts
+
+
+def fit_unit(tpl, model, unit, ref, basis, vis):
+    """The unit's activation: the best (cosine, within the ratio band) of the fits over every actuator,
+    over the unit's FACS muscles (PRIMARY) and, for a pinned unit, the pinned actuators alone."""
+    side, pinned = unit_side(unit), PINNED.get(unit, {})
+    candidates = [_fit(tpl, model, ref, basis, vis, list(basis), side, pinned)]
+    if unit in PRIMARY:
+        allowed = [a for a in basis if a in PRIMARY[unit] or (side == "m" and arkit.mirror_actuator(a) in PRIMARY[unit])]
+        candidates.append(_fit(tpl, model, ref, basis, vis, allowed, side, pinned))
+    if pinned:
+        candidates.append(dict(pinned))
+    scored = []
+    for acts in candidates:
+        x = model.equilibrium(arkit.to_controls(acts))
+        d = (x - tpl.skin.verts)[vis].ravel()
+        scored.append((judge_field(d, ref[vis].ravel()), acts))
+    acts = max(scored, key=lambda t: t[0])[1]
     controls = arkit.to_controls(acts)
     x = model.equilibrium(controls)
     cos, ratio = judge(tpl, model, x, ref, vis)

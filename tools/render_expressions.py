@@ -28,6 +28,7 @@ from tools import render_pictures, testheads  # noqa: E402
 ARKIT_SHOWN = ("jawOpen", "mouthSmileLeft", "mouthPucker", "mouthFunnel", "browInnerUp", "cheekPuff",
                "mouthFrownLeft", "jawLeft")
 CELL = (260, 300)
+ORTHO = 0.2                     # the view's height, m
 SHOWN_PARTS = ("skin", "eye_l", "eye_r", "teeth_upper", "teeth_lower")
 
 
@@ -58,6 +59,7 @@ def _grid(paths, n_cols, out):
     img = bpy.data.images.new("sheet", combined.shape[1], combined.shape[0], alpha=False)
     img.pixels.foreach_set(combined.ravel())
     settings = bpy.context.scene.render.image_settings
+    img.save_render(str(out.with_suffix(".png")), scene=bpy.context.scene)     # lossless, to look at
     settings.file_format, settings.quality = "JPEG", 80
     img.save_render(str(out), scene=bpy.context.scene)
     settings.file_format = "PNG"
@@ -92,13 +94,14 @@ def main(argv=None):
             objs[part] = bpy.data.objects.new(me.name, me)
             sc.collection.objects.link(objs[part])
         v = ana.parts["skin"]
-        face = v[:, 2] > np.percentile(v[:, 2], 35)
-        centre = np.array([0.5 * (v[face, 0].min() + v[face, 0].max()), v[face, 1].mean(),
-                           0.5 * (v[face, 2].min() + v[face, 2].max()) - 0.01])
-        cam = render_pictures._camera(sc, centre, (0, 1, 0), 0.24)
+        nose, chin = ana.fdps["9.3"], ana.fdps["2.1"]
+        centre = np.array([nose[0], v[:, 1].mean(), 0.5 * (nose[2] + chin[2]) + 0.012])
+        cam = render_pictures._camera(sc, centre, (0, 1, 0), ORTHO)
         cols = columns(tpl, ana)
         n_cols = len(cols)
-        label = render_pictures._label("", centre + [-0.097, -0.2, 0.1], sc.collection, size=0.014)
+        half = 0.5 * ORTHO
+        label = render_pictures._label("", centre + [-0.93 * half * CELL[0] / CELL[1], -0.2, 0.86 * half],
+                                       sc.collection, size=0.011)
         for i, (name, moved) in enumerate(cols):
             for part, obj in objs.items():
                 bridge.set_vertex_positions(obj.data, moved.get(part, ana.parts[part]))
@@ -109,6 +112,8 @@ def main(argv=None):
             bpy.data.objects.remove(obj)
         print(f"seed {seed}: {n_cols} keys rendered", flush=True)
     _grid(paths, n_cols, out / "expressions_sheet.jpg")
+    (out / "expressions_sheet.png").replace(tmp / "expressions_sheet.png")
+    print(f"lossless copy: {tmp / 'expressions_sheet.png'}")
     print(f"{out / 'expressions_sheet.jpg'}: {(out / 'expressions_sheet.jpg').stat().st_size // 1024} kB")
 
 

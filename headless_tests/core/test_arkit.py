@@ -12,6 +12,7 @@ from headadapt_addon.core.skin import arkit, bake
 
 EXPRESSED_COSINE, EXPRESSED_RATIO, HEAD_COSINE = 0.85, (0.75, 1.25), 0.8     # issue 21's done-when
 MIRROR_TOL = 0.5e-3
+CLOSED = 1e-3            # the eye is closed when the lid margins' middles are within 1 mm
 
 
 def _bench():
@@ -103,6 +104,15 @@ def test_the_gaze_turns_the_eye_and_the_jaw_keys_move_the_mandible(tpl, baked):
     assert keys["tongueOut"].moved["tongue"][:, 1].mean() < tpl.parts["tongue"].verts[:, 1].mean() - 0.01
 
 
+def test_eye_blink_closes_the_eye_on_the_template(tpl, baked):
+    keys, _ = baked
+    rest = bench.lid_gaps(tpl, tpl.skin.verts)
+    for side, unit in enumerate(("eyeBlinkLeft", "eyeBlinkRight")):
+        gaps = bench.lid_gaps(tpl, keys[unit].moved["skin"])
+        assert gaps[side] <= CLOSED, (unit, gaps)
+        assert gaps[1 - side] == pytest.approx(rest[1 - side], abs=1e-4), unit     # the other eye stays open
+
+
 @pytest.mark.slow
 def test_every_expressed_key_matches_its_face_unit_on_the_template(tpl, baked, refs):
     keys, _ = baked
@@ -122,6 +132,8 @@ def test_arkit_keys_on_adapted_heads(tpl, legacy_heads, refs, seed):
     model = timing["model"]
     vis = ~tpl.hidden
     rest = ana.parts["skin"]
+    for side, unit in enumerate(("eyeBlinkLeft", "eyeBlinkRight")):       # the blink closes the eye
+        assert bench.lid_gaps(tpl, next(k for k in keys if k.name == unit).moved["skin"])[side] <= CLOSED, (seed, unit)
     for key in keys:
         skin = key.moved["skin"]
         assert len(model.flipped(skin)) == 0, (seed, key.name)
