@@ -73,6 +73,41 @@ PRIMARY = {
     "mouthClose": ("orbicularis_oris", "mentalis_l", "lip_push_lower"),
     "cheekPuff": ("cheek_puff_l",),
 }
+# What the model lacks for a unit it does not reach (Left and midline names).
+REASONS = {
+    "eyeBlinkLeft": "the lid plates close the eye (both lids, as a blink) but turn only the lid's rim; the "
+                    "artist's blink slides the whole upper lid skin down over the eye, about 2.5 times the motion",
+    "eyeLookDownLeft": "the key turns the eyeball; the lids' following of the gaze is only partly a turn of "
+                       "the lid plates about the eye's horizontal axis",
+    "eyeLookUpLeft": "the key turns the eyeball; the lids' following of the gaze is only partly a turn of "
+                     "the lid plates about the eye's horizontal axis",
+    "eyeLookInLeft": "the key turns the eyeball; the lids slide sideways with the gaze, and no control "
+                     "moves them sideways",
+    "eyeLookOutLeft": "the key turns the eyeball; the lids slide sideways with the gaze, and no control "
+                      "moves them sideways",
+    "eyeSquintLeft": "no control tightens the lower lid (orbicularis oculi's palpebral part); the model's "
+                     "orbicularis oculi pulls the skin around the eye toward the eye's centre",
+    "eyeWideLeft": "the raised upper lid turns only the lid's rim; the artist lifts the lid's fold and the "
+                   "skin up to the brow with it",
+    "mouthClose": "a corrective for jawOpen (the lips meet with the jaw open): alone it moves the lips up "
+                  "to 35 mm through each other, which skin on a closed jaw cannot do",
+    "mouthFunnel": "the lips flare and push forward, but the artist's funnel opens the lips into an O "
+                   "that the lip controls do not open",
+    "mouthSmileLeft": "the zygomaticus pull stops at the lip corner's contact; the smile's curl of the lip "
+                      "corner and its rise toward the cheek are not reached",
+    "mouthRollLower": "the lips roll in over the teeth: no control turns a lip about its own length",
+    "mouthRollUpper": "the lips roll in over the teeth: no control turns a lip about its own length",
+    "mouthShrugLower": "the mentalis lifts the chin but does not push the lower lip up and out as far",
+    "mouthLowerDownLeft": "the depressor labii pulls the lower lip down, but not as far toward the corner",
+    "mouthUpperUpLeft": "the levator labii lifts the upper lip, but not the lip's side as far as the artist",
+    "browDownLeft": "the corrugator pulls the brows together and down; the brow's drop over the eye "
+                    "(procerus, orbicularis oculi's orbital part) has no control",
+    "browInnerUp": "the frontalis' fall-off spreads the lift over the forehead; the artist lifts the brow itself",
+    "browOuterUpLeft": "the frontalis' fall-off spreads the lift over the forehead; the artist lifts the brow itself",
+    "cheekSquintLeft": "no control lifts the cheek under the eye (orbicularis oculi's orbital part)",
+    "noseSneerLeft": "no control lifts the nose's wing and the skin beside it (levator labii superioris "
+                     "alaeque nasi)",
+}
 WHY_NOT = {
     "tongueOut": "faceunits01's tongueOut moves no skin; the template's tongue is a rigid stand-in, "
                  "the key slides it forward",
@@ -183,23 +218,45 @@ def fit_unit(tpl, model, unit, ref, basis, vis):
 
 
 def verdict(unit, entry):
+    """(expressed, why not) of a fitted entry, from its figures."""
     if unit in WHY_NOT:
         return False, WHY_NOT[unit]
     lo, hi = EXPRESSED_RATIO
     if entry["cosine"] >= EXPRESSED_COSINE and lo <= entry["ratio"] <= hi and not entry["folds"] \
             and not entry["in_bone"]:
         return True, ""
-    return False, (f"the best bounded fit of the model's muscles, jaw and lids reaches cosine "
-                   f"{entry['cosine']:.2f}, ratio {entry['ratio']:.2f}, {entry['folds']} folds, "
-                   f"{entry['in_bone']} vertices in the bone (needs cosine >= {EXPRESSED_COSINE}, "
-                   f"ratio {lo}-{hi}, none)")
+    reason = REASONS.get(unit.replace("Right", "Left"), "")
+    return False, ((reason + ": " if reason else "") +
+                   f"the best bounded fit reaches cosine {entry['cosine']:.2f}, ratio {entry['ratio']:.2f}, "
+                   f"{entry['folds']} folds, {entry['in_bone']} vertices in the bone (needs cosine >= "
+                   f"{EXPRESSED_COSINE}, ratio {lo}-{hi}, none)")
+
+
+def label(unit, entry):
+    """Set an entry's expressed and why; a unit far from its fit gets a neutral key (no activations)."""
+    entry["expressed"], entry["why"] = verdict(unit, entry)
+    if unit.replace("Right", "Left") in PINNED:
+        entry["why"] += "; its key is that fit (the eye closes)" if entry["why"] else ""
+    elif not entry["expressed"] and ((entry["cosine"] or 0) < BAKED_COSINE or entry["folds"] or entry["in_bone"]):
+        entry["activations"] = {}
+        entry["why"] += "; its key is neutral"
+    elif not entry["expressed"]:
+        entry["why"] += "; its key is that nearest shape"
+    return entry
 
 
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", default=str(TEMPLATE_DIR / "arkit.json"))
     ap.add_argument("--units", default="", help="fit only these (print, write nothing)")
+    ap.add_argument("--relabel", action="store_true", help="no fit: the stored table's verdicts and reasons "
+                                                           "redone from its figures")
     args = ap.parse_args()
+    if args.relabel:
+        table = json.loads(pathlib.Path(args.out).read_text())
+        table["units"] = {u: label(u, e) for u, e in table["units"].items()}
+        pathlib.Path(args.out).write_text(json.dumps(table, indent=1) + "\n")
+        return
     tpl = load_template()
     model = build(tpl)
     refs = faceunits.load_faceunits(tpl, arkit.UNITS)
@@ -218,15 +275,7 @@ def main():
             entry = {"activations": {}, "cosine": None, "ratio": None, "folds": 0, "in_bone": 0}
         else:
             entry = fit_unit(tpl, model, unit, refs[unit], basis, vis)
-        entry["expressed"], entry["why"] = verdict(unit, entry)
-        if unit in PINNED:
-            entry["why"] += "; its key is that fit (the eye closes)" if entry["why"] else ""
-        elif not entry["expressed"] and (entry["cosine"] or 0) < BAKED_COSINE or entry["folds"] or entry["in_bone"]:
-            entry["activations"] = {}
-            entry["why"] += "; its key is neutral"
-        elif not entry["expressed"]:
-            entry["why"] += "; its key is that nearest shape"
-        units[unit] = entry
+        units[unit] = label(unit, entry)
         print(f"{unit:20s} cos {entry['cosine']} ratio {entry['ratio']} folds {entry['folds']} "
               f"in bone {entry['in_bone']} {'EXPRESSED' if entry['expressed'] else 'not: ' + entry['why']}\n"
               f"    {entry['activations']}", flush=True)
