@@ -27,8 +27,8 @@ from tools import render_pictures, testheads  # noqa: E402
 
 ARKIT_SHOWN = ("jawOpen", "mouthSmileLeft", "mouthPucker", "mouthFunnel", "browInnerUp", "cheekPuff",
                "mouthFrownLeft", "jawLeft")
-CELL = (260, 300)
-ORTHO = 0.2                     # the view's height, m
+CELL = (190, 220)
+ORTHO = 0.215                   # the view's height, m
 SHOWN_PARTS = ("skin", "eye_l", "eye_r", "teeth_upper", "teeth_lower")
 
 
@@ -60,7 +60,7 @@ def _grid(paths, n_cols, out):
     img.pixels.foreach_set(combined.ravel())
     settings = bpy.context.scene.render.image_settings
     img.save_render(str(out.with_suffix(".png")), scene=bpy.context.scene)     # lossless, to look at
-    settings.file_format, settings.quality = "JPEG", 80
+    settings.file_format, settings.quality = "JPEG", 72
     img.save_render(str(out), scene=bpy.context.scene)
     settings.file_format = "PNG"
 
@@ -95,13 +95,13 @@ def main(argv=None):
             sc.collection.objects.link(objs[part])
         v = ana.parts["skin"]
         nose, chin = ana.fdps["9.3"], ana.fdps["2.1"]
-        centre = np.array([nose[0], v[:, 1].mean(), 0.5 * (nose[2] + chin[2]) + 0.012])
+        centre = np.array([nose[0], v[:, 1].mean(), 0.5 * (nose[2] + chin[2]) + 0.025])
         cam = render_pictures._camera(sc, centre, (0, 1, 0), ORTHO)
         cols = columns(tpl, ana)
         n_cols = len(cols)
         half = 0.5 * ORTHO
         label = render_pictures._label("", centre + [-0.93 * half * CELL[0] / CELL[1], -0.2, 0.86 * half],
-                                       sc.collection, size=0.011)
+                                       sc.collection, size=0.0105)
         for i, (name, moved) in enumerate(cols):
             for part, obj in objs.items():
                 bridge.set_vertex_positions(obj.data, moved.get(part, ana.parts[part]))

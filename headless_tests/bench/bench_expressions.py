@@ -100,7 +100,7 @@ def judge_keys(tpl, keys, refs, parts, model):
         fap = mpeg4.FAP_BY_NAME.get(key.name)
         sideways = other is key and fap is not None and fap.direction is not None and fap.direction[0] != 0
         asym = None if sideways else float(np.abs((other.moved["skin"] - rest)[mir] * [-1, 1, 1] - d).max())
-        gap = lid_gaps(tpl, skin) if "eyelid" in key.name else None
+        gap = lid_gaps(tpl, skin) if "eyelid" in key.name or key.name.startswith("eyeBlink") else None
         out[key.name] = {"cos": cos, "ratio": ratio, "max_mm": float(np.linalg.norm(d[vis], axis=1).max() * 1e3),
                          "folds": len(model.flipped(skin)), "in_bone": inside,
                          "asym_mm": None if asym is None else asym * 1e3, "gap": gap}
