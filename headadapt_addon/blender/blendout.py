@@ -78,7 +78,7 @@ def build_result_objects(tpl, result, target_scene, scan_matrix=None, anatomy=No
     return root
 
 
-def bake_result(tpl, root, kinds=("expression", "viseme", "fap"), preview=True, progress=None, anatomy=None):
+def bake_result(tpl, root, kinds=("expression", "viseme", "fap", "arkit"), preview=True, progress=None, anatomy=None):
     """Bake expressions/visemes/FAPs of a head hierarchy to shape keys (+ the preview action); timings.
     The anatomy simulated is `anatomy` (the batch passes the transfer's own), else the one stored on
     the root by build_result_objects, else (the template's hierarchy) the template's."""

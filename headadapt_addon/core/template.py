@@ -63,6 +63,7 @@ class Template:
     skin_mirror: np.ndarray   # (n_skin,) index of each skin vertex's left/right partner
     meta: dict           # the whole template.json
     bone_skin_index: dict = dataclasses.field(default_factory=dict)   # bone -> (n_bone,) skin vertex it was offset from
+    arkit: dict = dataclasses.field(default_factory=dict)   # arkit.json: the ARKit units' fitted activations
 
     @property
     def skin(self):
@@ -130,8 +131,14 @@ def load_template(directory: str | pathlib.Path | None = None) -> Template:
         except KeyError as exc:
             raise FileFormatError(f"{npz_path} has no array {exc.args[0]!r}") from exc
     regions = meta["regions"]
+    arkit_path = directory / "arkit.json"          # fitted on the built template by tools/fit_arkit.py
+    try:
+        arkit = json.loads(arkit_path.read_text()) if arkit_path.exists() else {}
+    except (OSError, ValueError) as exc:
+        raise FileFormatError(f"cannot read {arkit_path}: {exc}") from exc
     return Template(parts=parts, region=arrays["skin_region"],
                     region_names=tuple(r["name"] for r in regions),
                     region_weights=np.array([r["weight"] for r in regions]),
                     skin_mirror=arrays["skin_mirror"], meta=meta,
-                    bone_skin_index={b: arrays[f"{b}_skin_index"] for b in BONES if f"{b}_skin_index" in arrays})
+                    bone_skin_index={b: arrays[f"{b}_skin_index"] for b in BONES if f"{b}_skin_index" in arrays},
+                    arkit=arkit)

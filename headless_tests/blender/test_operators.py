@@ -216,7 +216,11 @@ def test_batch_writes_a_blend_that_reopens_with_the_report(tmp_path):
              " 'viseme_A' in kb, rep['bake']['keys'], bpy.context.scene.frame_end);"
              "views = [s for sc in bpy.data.screens for a in sc.areas for s in a.spaces if s.type == 'VIEW_3D'];"
              "print('SHOW', len(views) > 0, all(v.shading.color_type == 'VERTEX' for v in views),"
-             " scan.display_type, all(o.hide_get() for o in root.children_recursive if 'headadapt_fdp' in o))")
+             " scan.display_type, all(o.hide_get() for o in root.children_recursive if 'headadapt_fdp' in o));"
+             "from headadapt_addon.core.skin import arkit;"
+             "eye = next(o for o in root.children_recursive if o.get('headadapt_part') == 'eye_l');"
+             "print('ARKIT', [u for u in arkit.UNITS if u not in kb], sorted(set(kb.keys()) & {u.lower() for u in arkit.UNITS}),"
+             " 'eyeLookUpLeft' in eye.data.shape_keys.key_blocks, 'eyeLookUpRight' in eye.data.shape_keys.key_blocks)")
     res = subprocess.run([sys.executable, "-c", check, str(out / "head.blend")], capture_output=True, text=True)
     assert "OK 2 True True 9" in res.stdout, res.stdout + res.stderr
     assert "VIEW HeadAdapt camera CAMERA ['LIGHT']" in res.stdout, res.stdout       # renders without setup
@@ -225,6 +229,8 @@ def test_batch_writes_a_blend_that_reopens_with_the_report(tmp_path):
     keys = res.stdout.split("KEYS")[1].split()
     assert int(keys[0]) > 1 + 6 + 14 + 40 and keys[1:4] == ["True", "True", "True"], res.stdout
     assert int(keys[5]) >= 6 * 30
+    # ARKit's 52, each under its exact name (none missing, none lowercased), the gaze turning the eye
+    assert "ARKIT [] [] True False" in res.stdout, res.stdout
 
 
 @pytest.mark.slow
@@ -243,11 +249,17 @@ def test_expressions_panel_bakes_the_template_and_imports_a_fap_file(ui_scene, t
         with pytest.raises(RuntimeError, match="poll"):
             bpy.ops.headadapt.bake_expressions()                      # no head yet: greyed out
         bpy.ops.headadapt.add_template()
-        assert bpy.ops.headadapt.bake_expressions(sets={"expression", "fap"}) == {"FINISHED"}
+        assert bpy.ops.headadapt.bake_expressions(sets={"expression", "fap", "arkit"}) == {"FINISHED"}
         root = bpy.context.scene.headadapt.template_root
         skin = next(o for o in root.children_recursive if o.get("headadapt_part") == "skin")
         kb = skin.data.shape_keys.key_blocks
         assert "joy" in kb and "open_jaw" in kb and "viseme_A" not in kb
+        from headadapt_addon.core.skin import arkit
+        assert [u for u in arkit.UNITS if u not in kb] == [] and len(arkit.UNITS) == 52   # ARKit's exact names
+        info = json.loads(skin["headadapt_keys"])
+        assert {n for n, k in info.items() if k["kind"] == "arkit"} == set(arkit.UNITS)
+        jaw = next(o for o in root.children_recursive if o.get("headadapt_part") == "mandible")
+        assert "jawOpen" in jaw.data.shape_keys.key_blocks
         jaw = next(o for o in root.children_recursive if o.get("headadapt_part") == "mandible")
         assert "open_jaw" in jaw.data.shape_keys.key_blocks          # the mandible follows the jaw
         # the preview plays the six expressions one after another

@@ -92,8 +92,12 @@ def test_lids_close_the_eye_on_adapted_heads(tpl, legacy_heads, seed):
         if gap > CLOSED:
             open_.append((name, round(gap * 1e3, 2)))
     if open_:
-        # known: seed 3's left upper lid alone is stopped by the unfold relaxation (its inner
-        # canthus is 3 mm from where the lid must turn 14 degrees); a blink closes it
+        # known, seed 3's left upper lid alone: the placed lid closes the eye (gap 0), but the
+        # canthus the plate finds (where the margins' edges join) lies 4.8 mm lateral of the clicked
+        # inner corner 3.11, so the turn ramps from 0 to 41% across one 3 mm triangle, which folds
+        # (2 triangles); the unfold relaxation, growing its patch until the fold is gone, smooths
+        # the closed margin back up to 6.9 mm. Holding the plate's skin during the unfold leaves
+        # folds (6 here, 27 in surprise): tried, not kept. A blink (both lids) closes it.
         pytest.xfail(f"upper lid alone leaves the eye open on seed {seed}: {open_}")
 
 
@@ -138,3 +142,21 @@ def test_the_benchmark_judges_a_key(tpl, model):
     assert bench.compare(d, d, vis) == pytest.approx((1.0, 1.0))
     assert bench.compare(2 * d, d, vis) == pytest.approx((1.0, 2.0))
     assert bench.compare(-d, d, vis)[0] == pytest.approx(-1.0)
+
+
+@pytest.mark.slow
+def test_every_shipped_key_is_fold_free_out_of_the_bone_and_mirror_symmetric_on_the_template(tpl):
+    """Every key bake writes (expressions, visemes, FAP keys, ARKit's 52) at 1 on the template: no folded
+    triangle, no visible skin in the bone, and the mirror image of its other side's key (of itself for
+    a midline key) within 0.5 mm; sideways FAPs (shift_jaw, bend_nose) have no mirror partner."""
+    import collections
+
+    keys, timing = bake.bake(tpl)
+    n = len(tpl.skin.verts)
+    judged = bench.judge_keys(tpl, keys, collections.defaultdict(lambda: np.zeros((n, 3))),
+                              {k: p.verts for k, p in tpl.parts.items()}, timing["model"])
+    assert len(judged) > 6 + 14 + 40 + 52
+    for name, r in judged.items():
+        assert r["folds"] == 0 and r["in_bone"] == 0, (name, r)
+        assert r["asym_mm"] is None or r["asym_mm"] < 0.5, (name, r["asym_mm"])
+    assert sum(r["asym_mm"] is None for r in judged.values()) <= 2

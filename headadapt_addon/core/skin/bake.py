@@ -16,7 +16,7 @@ from scipy.spatial.transform import Rotation
 
 from .. import mpeg4
 from ..anatomy import surface_point
-from . import drive
+from . import arkit, drive
 from .build import build
 
 JAW_FOLLOWERS = ("mandible", "teeth_lower", "tongue")
@@ -53,8 +53,9 @@ def _fap_units(fap, tpl, parts, moved, fapus):
     return float(d @ np.asarray(fap.direction) / fapus[fap.unit])
 
 
-def bake(tpl, anatomy=None, kinds=("expression", "viseme", "fap"), progress=None):
-    """Baked keys [BakedKey] for the template or an adapted Anatomy, and timings {build_s, per_key_s}."""
+def bake(tpl, anatomy=None, kinds=("expression", "viseme", "fap", "arkit"), progress=None):
+    """Baked keys [BakedKey] for the template or an adapted Anatomy, and timings {build_s, per_key_s}.
+    kinds: "expression", "viseme", "fap" (MPEG-4), "arkit" (ARKit's 52, core.skin.arkit)."""
     t0 = time.perf_counter()
     model = build(tpl, anatomy)
     build_s = time.perf_counter() - t0
@@ -63,6 +64,7 @@ def bake(tpl, anatomy=None, kinds=("expression", "viseme", "fap"), progress=None
     jobs = [r for r in drive.shape_key_recipes() if r[1] in kinds]
     if "fap" in kinds:
         jobs += [(name, "fap_rigid", spec) for name, spec in drive.FAP_RIGID.items()]
+    n_jobs = len(jobs) + (len(arkit.UNITS) if "arkit" in kinds else 0)
     keys = []
     t1 = time.perf_counter()
     for i, (name, kind, recipe) in enumerate(jobs):
@@ -89,6 +91,11 @@ def bake(tpl, anatomy=None, kinds=("expression", "viseme", "fap"), progress=None
                 units = _fap_units(mpeg4.FAP_BY_NAME[name], tpl, parts, moved, fapus)
             keys.append(BakedKey(name, kind, moved, units))
         if progress:
-            progress((i + 1) / len(jobs), name)
-    per_key = (time.perf_counter() - t1) / max(len(jobs), 1)
+            progress((i + 1) / n_jobs, name)
+    if "arkit" in kinds:
+        done = len(jobs)
+        for name, moved in arkit.bake_units(tpl, model, parts, JAW_FOLLOWERS, progress and (
+                lambda f, unit: progress((done + f * len(arkit.UNITS)) / n_jobs, unit))):
+            keys.append(BakedKey(name, "arkit", moved))
+    per_key = (time.perf_counter() - t1) / max(n_jobs, 1)
     return keys, {"build_s": build_s, "per_key_s": per_key, "keys": len(keys), "model": model}

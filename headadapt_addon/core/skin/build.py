@@ -100,12 +100,16 @@ def build(tpl, anatomy=None):
 
     rest_gap = np.einsum("ij,ij->i", skin - closest, bone_fn)
     jaw = tpl.meta["jaw"]
+    jaw_axis = np.asarray(jaw["axis"], dtype=float)
+    if anatomy is None:                   # the symmetric head's jaw turns about the left-right axis (the
+        jaw_axis = np.array([np.sign(jaw_axis[0]), 0.0, 0.0])   # stored one is tilted 0.15 deg by its fit)
     adj = geometry.neighbour_mean(tris, n)
     bone = tuple((queries[k], geometry.face_normals(parts[k], tpl.parts[k].tris),
                   near_opening(parts[k], tpl.parts[k].tris)) for k in ("cranium", "mandible"))
     bone += (np.asarray(parts["cranium"], float), np.asarray(parts["mandible"], float), bone_t)
     return SkinModel(bone=bone, tris=tris, folds=geometry.FoldCheck(skin, tris, SLIVER), adjacency=adj,
                      n=n, rest=rest, solve=solve, matrix=matrix, forces=forces, bone_k=bone_k, on_mandible=on_mandible,
-                     jaw_pivot=np.asarray(jaw_pivot, dtype=float), jaw_axis=np.asarray(jaw["axis"]), lids=lids,
+                     jaw_pivot=np.asarray(jaw_pivot, dtype=float), jaw_axis=jaw_axis, lids=lids,
                      bone_dist=bone_dist, bone_normal=bone_fn, free=~hidden & (rest_gap > 0),
-                     clearance=np.minimum(NON_PENETRATION, 0.9 * np.maximum(rest_gap, 0)))
+                     clearance=np.minimum(NON_PENETRATION, 0.9 * np.maximum(rest_gap, 0)),
+                     mirror=tpl.skin_mirror if anatomy is None else None)

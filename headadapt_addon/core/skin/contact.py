@@ -88,7 +88,10 @@ class ContactMixin:
             deficit[near] = np.maximum(self.clearance[near] - gap, 0.0)
             for _ in range(3):          # neighbours share part of a push, so it shears no triangle
                 deficit = np.maximum(deficit, 0.6 * (self.adjacency @ deficit)) * self.free
-            x = x + deficit[:, None] * contact.normal
+            push = deficit[:, None] * contact.normal
+            if contact.symmetric:           # a symmetric state stays symmetric (Contact.symmetric)
+                push = 0.5 * (push + push[self.mirror] * [-1.0, 1.0, 1.0])
+            x = x + push
             if not odd.any():
                 break
         return x
@@ -162,9 +165,11 @@ class Contact:
     """Skin-bone contact during one equilibrium: per skin vertex its outward rest bone direction
     (moved with the mandible), the mandible's (rot, t), the direction a push moves it (out of the
     bone), and where its side of the bone was last decided with how far it may move and keep it,
-    signed: + outside, - inside (0: never)."""
+    signed: + outside, - inside (0: never). symmetric: the skin is the template's mirror image of itself
+    (SkinModel._symmetric), so every push is made symmetric too."""
     outward: np.ndarray
     jaw: tuple
+    symmetric: bool = False
     normal: np.ndarray = None
     sided_at: np.ndarray = None
     sided_keep: np.ndarray = None

@@ -63,6 +63,7 @@ class SkinModel(JawMixin, ContactMixin):
     adjacency: object             # (n,n) sparse, row-normalised vertex neighbours
     bone: tuple                   # (cranium, mandible) each (query, face normals, faces by an opening),
                                   # then cranium verts, mandible verts (rest), skull triangles
+    mirror: np.ndarray = None     # (n,) the template's left/right partner of each vertex (None: a scanned head)
 
     @property
     def controls(self):
@@ -120,9 +121,15 @@ class SkinModel(JawMixin, ContactMixin):
             x += fix
         # skull non-penetration, on the true bone (the mandible moved)
         bn = np.where(self.on_mandible[:, None], self.bone_normal @ rot.T, self.bone_normal)
-        contact = Contact(bn, (rot, t))
+        contact = Contact(bn, (rot, t), symmetric=self._symmetric(x))
         x = self._keep_out_of_bone(x, contact)
         return self._unfold(self._retract_from_bone(x, contact), contact)
+
+    def _symmetric(self, x):
+        """Whether skin x (n,3) is the template's mirror image of itself (to rounding): then the
+        contact pushes it symmetrically (a midline point at a crease of the bone has two nearest
+        points; either one would push it sideways)."""
+        return self.mirror is not None and float(np.abs(x[self.mirror] * [-1.0, 1.0, 1.0] - x).max()) < 1e-7
 
     def flipped(self, x):
         """Indices of skin triangles whose normal turned against its rest normal at positions x (n,3)."""
