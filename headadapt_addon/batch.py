@@ -199,6 +199,7 @@ def run_adapt(scan_path, landmarks_path, out_dir, levels=None, calibration="auto
         verts = as_blender_stores(verts)
         points, meta = meshio.read_landmark_file(landmarks_path)
         markers = meta.get("markers")
+        record["stage_seconds"] = {"read": time.perf_counter() - t0}
         try:
             record["inputs_sha256"] = {"scan": file_sha256(scan_path), "landmarks": file_sha256(landmarks_path)}
         except OSError as exc:
@@ -249,15 +250,10 @@ def adapt_options(levels=None, calibration="auto", keep_flagged=False):
 
 
 def spatial_backend():
-    """The batch's spatial backend, said in the log: Blender's BVH (the figures in the README) where
-    Blender's mathutils loads (in Blender, or beside the bpy module), else the exact numpy one (same
-    answers up to ties; a Python without Blender, or a worker whose memory limit stops bpy loading)."""
-    from .core.mesh.spatial import bvh_class
-
-    try:
-        return "bvh" if bvh_class() is not None else "numpy"
-    except (MemoryError, OSError):
-        return "numpy"
+    """The batch's spatial backend: always the exact numpy one (core/mesh/bvh.py), inside Blender or not,
+    so the batch imports bpy only to write a .blend (importing it costs about a second of the command,
+    and a worker whose memory limit stops bpy loading still adapts)."""
+    return "numpy"
 
 
 def _adapt_and_write(record, verts, tris, points, markers, outputs, levels, calibration, keep_flagged, t0, log,
@@ -278,6 +274,7 @@ def _adapt_and_write(record, verts, tris, points, markers, outputs, levels, cali
         "template_sha256": tpl.meta["content_sha256"],
         "scan_vertices": int(len(verts)), "scan_triangles": int(len(tris)),
         **result.report(),
+        "stage_seconds": {**record["stage_seconds"], **result.stages},    # read, then the adaptation's
         "warnings": outcome_text.warning_lines(result.outcome, result.flagged, result.dropped),
     }
     meshio.write_obj(outputs["adapted OBJ"], result.verts_scan, tpl.skin.tris,
@@ -293,7 +290,9 @@ def _adapt_and_write(record, verts, tris, points, markers, outputs, levels, cali
     if "--preview image" in outputs:
         _write_preview(outputs["--preview image"], tpl, result, verts, tris, points, report, log)
     if "--blend file" in outputs:
-        _write_blend(outputs["--blend file"], tpl, result, verts, tris, points, report, log)
+        t_blend = time.perf_counter()
+        _write_blend(outputs["--blend file"], tpl, result, verts, tris, points, report, log)   # + transfer, bake
+        report["stage_seconds"]["blend"] = time.perf_counter() - t_blend
     report["total_seconds"] = time.perf_counter() - t0
     meshio.write_atomic(outputs["report"], json.dumps(report, indent=1, default=float))
     return report
@@ -359,6 +358,12 @@ def output_names(scans: list[pathlib.Path]) -> list[str]:
     return names
 
 
+# One BLAS thread per scan process: folder mode runs a process per scan side by side, and OpenBLAS's
+# helper threads spin without end (a scan never finishing, not an out-of-memory) once --memory-gb's
+# address-space limit stops their buffers being allocated.
+SCAN_PROCESS_THREADS = {"OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+
+
 def _child_command(job: dict) -> list[str]:
     """The command that runs one scan of folder mode: this Python with the package importable, or, inside
     a Blender binary (whose Python cannot import bpy), Blender itself in background mode."""
@@ -402,7 +407,8 @@ def run_isolated(job: dict) -> dict:
         meshio.write_atomic(out_dir / "report.json", json.dumps(
             {"status": "failed", "run": job["run"], "scan": job["scan"], "error": error}, indent=1))
         return {**entry, "status": "failed", "error": error, "seconds": 0.0}
-    env = dict(os.environ, PYTHONPATH=os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")])))
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")])),
+               **SCAN_PROCESS_THREADS)
     t0 = time.monotonic()
     out_dir.mkdir(parents=True, exist_ok=True)
     with open(out_dir / "log.txt", "wb") as log_file:
@@ -457,6 +463,9 @@ def _read_report(path: pathlib.Path, run: str) -> dict:
 def _scan_main(job_text: str) -> int:
     """The process of one scan in folder mode: memory limit, end with the parent, adapt, exit code."""
     job = json.loads(job_text)
+    # The parent holds our stdin open; when it dies (kill -9) the pipe closes and this scan stops too.
+    # (Started before the memory limit, which can leave no room for a thread's stack.)
+    threading.Thread(target=_exit_with_parent, daemon=True).start()
     try:
         import resource
     except ImportError:                  # Windows: no address-space limit
@@ -465,8 +474,6 @@ def _scan_main(job_text: str) -> int:
         limit = int(job["memory_gb"] * (1 << 30))
         _, hard = resource.getrlimit(resource.RLIMIT_AS)
         resource.setrlimit(resource.RLIMIT_AS, (limit if hard == resource.RLIM_INFINITY else min(limit, hard), hard))
-    # The parent holds our stdin open; when it dies (kill -9) the pipe closes and this scan stops too.
-    threading.Thread(target=_exit_with_parent, daemon=True).start()
     return _adapt_exit_code(job["scan"], job["landmarks"], job["out_dir"], job["levels"], job["calibration"],
                             job["keep_flagged"], job["blend"], True, job["run"],
                             memory_hint=f" (the limit is {job['memory_gb']:g} GB: --memory-gb)")

@@ -63,9 +63,9 @@ from headadapt_addon.core import meshio, mpeg4  # noqa: E402
 from headadapt_addon.core.mesh import geometry, spatial  # noqa: E402
 from headadapt_addon.core.template import load_template  # noqa: E402
 
-# Spatial queries of the generator (visibility rays, snapping the clicks): Blender's BVH, which made
-# every published head; the bpy module is needed here anyway (remeshing).
-BACKEND = "bvh"
+# Spatial queries of the generator (visibility rays, snapping the clicks): the exact numpy BVH, as the
+# adaptation's default (Blender's BVH answers the same up to float32 rounding and ties).
+BACKEND = "numpy"
 TARGET_CATEGORIES = ("head", "nose", "mouth", "chin", "cheek", "ears", "eyes", "forehead", "eyebrows", "neck")
 RACES = ("african", "asian", "caucasian")
 FACE_REGIONS = ("forehead", "brow_l", "brow_r", "eyelid_l", "eyelid_r", "nose", "cheek_l", "cheek_r",

@@ -4,6 +4,7 @@ import json
 import os
 import pathlib
 import tempfile
+import time
 
 import bpy
 import numpy as np
@@ -126,17 +127,23 @@ def add_camera_and_light(root, target_scene):
 def build_result_scene(tpl, result, scan_verts, scan_tris, landmarks, report, scan_name="scan", bake=True,
                        progress=None):
     """Add the scan (with its landmarks), the adapted template, a camera and a light, and (bake) its
-    shape keys (progress(fraction, key name) per key); return the root."""
+    shape keys (progress(fraction, key name) per key); return the root.
+    The seconds of the anatomy transfer and the bake go into report["stage_seconds"] (that dict itself)."""
+    stages = report.setdefault("stage_seconds", {})
     scan_obj = bpy.data.objects.new(scan_name, bridge.new_mesh(scan_name, scan_verts, scan_tris))
     bpy.context.scene.collection.objects.link(scan_obj)
     scan_obj["headadapt_landmarks"] = json.dumps({k: [float(c) for c in v] for k, v in landmarks.items()})
+    t0 = time.perf_counter()
     ana = transfer(tpl, result)
+    stages["transfer"] = time.perf_counter() - t0
     root = build_result_objects(tpl, result, bpy.context.scene, anatomy=ana)
     add_camera_and_light(root, bpy.context.scene)
     view.show_heat_map(bpy.data.screens)            # opened, the .blend shows the heat map and the legend
     view.show_scan_as_wire(scan_obj)
     if bake:
+        t0 = time.perf_counter()
         report = dict(report, bake=bake_result(tpl, root, anatomy=ana, progress=progress))
+        stages["bake"] = time.perf_counter() - t0
     text = bpy.data.texts.new("HeadAdapt report")
     text.write(json.dumps(report, indent=1, default=float))
     root["headadapt_report"] = json.dumps(report, default=float)

@@ -7,6 +7,7 @@ before a byte is read), then checks every count a header declares against the by
 
 from __future__ import annotations
 
+import io
 import os
 import pathlib
 
@@ -24,27 +25,53 @@ LANDMARKS_MAX_POINTS = 1000
 FAP_MAX_BYTES = 256 * MB
 
 
-def read_capped(path: os.PathLike | str, max_bytes: int, what: str) -> bytes:
-    """The bytes of path, a `what` ("scan", "landmark file", ...): FileFormatError naming the file if it
-    does not exist, cannot be read, is empty or is over max_bytes (checked before reading)."""
+class CappedFile(io.FileIO):
+    """A file opened for reading whose read(n) asks for no more than the bytes left in it: a parser
+    (plyfile) that sizes a read from a length stored in the file must not turn it into an allocation
+    of that length. `size` is the file's size when opened."""
+
+    def __init__(self, path: pathlib.Path):
+        super().__init__(path, "rb")
+        self.size = os.fstat(self.fileno()).st_size
+
+    def read(self, size: int = -1) -> bytes:
+        if size is not None and size > 0:
+            size = min(size, max(self.size - self.tell(), 0))
+        return super().read(size)
+
+
+def open_capped(path: os.PathLike | str, max_bytes: int, what: str) -> CappedFile:
+    """path opened as a CappedFile, a `what` ("scan", "landmark file", ...): FileFormatError naming the
+    file if it does not exist, cannot be read, is empty or is over max_bytes (checked before reading)."""
     path = pathlib.Path(path)
     try:
-        with open(path, "rb") as fh:
-            size = os.fstat(fh.fileno()).st_size
-            if size > max_bytes:
-                raise FileFormatError(f"{path}: {size / MB:.1f} MB is over the {max_bytes / MB:.0f} MB "
-                                      f"limit for a {what}")
-            data = bytearray()              # in blocks: read(n) would reserve n bytes before reading
-            while len(data) <= max_bytes and (block := fh.read(min(MB, max_bytes + 1 - len(data)))):
-                data += block
+        fh = CappedFile(path)
     except FileNotFoundError:
         raise FileFormatError(f"{path}: no such file") from None
     except IsADirectoryError:
         raise FileFormatError(f"{path}: a folder, not a {what}") from None
     except OSError as exc:
         raise FileFormatError(f"{path}: cannot read the {what} ({exc.strerror or exc})") from None
-    if len(data) > max_bytes:             # grew while being read
-        raise FileFormatError(f"{path}: over the {max_bytes / MB:.0f} MB limit for a {what}")
+    if fh.size > max_bytes:
+        fh.close()
+        raise FileFormatError(f"{path}: {fh.size / MB:.1f} MB is over the {max_bytes / MB:.0f} MB "
+                              f"limit for a {what}")
+    if fh.size == 0:
+        fh.close()
+        raise FileFormatError(f"{path}: the {what} is empty (0 bytes)")
+    return fh
+
+
+def read_capped(path: os.PathLike | str, max_bytes: int, what: str) -> bytes:
+    """The bytes of path, a `what`: open_capped's checks, then read in blocks (read(n) would reserve n
+    bytes before reading), no further than the size it had when opened (a file growing meanwhile)."""
+    with open_capped(path, max_bytes, what) as fh:
+        data = bytearray()
+        try:
+            while block := fh.read(MB):
+                data += block
+        except OSError as exc:
+            raise FileFormatError(f"{path}: cannot read the {what} ({exc.strerror or exc})") from None
     if not data:
         raise FileFormatError(f"{path}: the {what} is empty (0 bytes)")
     return bytes(data)

@@ -61,40 +61,11 @@ def _library(module: str, path: pathlib.Path) -> types.ModuleType:
 # ---------------------------------------------------------------------------------------------
 # PLY (plyfile)
 # ---------------------------------------------------------------------------------------------
-class _CappedFile(io.FileIO):
-    """A file opened for reading whose read(n) asks for no more than the bytes left in it: plyfile sizes
-    a read from a list length stored in the file, which must not become an allocation of that length."""
-
-    def __init__(self, path: pathlib.Path):
-        super().__init__(path, "rb")
-        self.size = os.fstat(self.fileno()).st_size
-
-    def read(self, size: int = -1) -> bytes:
-        if size is not None and size > 0:
-            size = min(size, max(self.size - self.tell(), 0))
-        return super().read(size)
+def _open_ply(path: pathlib.Path) -> limits.CappedFile:
+    return limits.open_capped(path, limits.SCAN_MAX_BYTES, "scan")
 
 
-def _open_ply(path: pathlib.Path) -> _CappedFile:
-    try:
-        fh = _CappedFile(path)
-    except FileNotFoundError:
-        raise FileFormatError(f"{path}: no such file") from None
-    except IsADirectoryError:
-        raise FileFormatError(f"{path}: a folder, not a scan") from None
-    except OSError as exc:
-        raise FileFormatError(f"{path}: cannot read the scan ({exc.strerror or exc})") from None
-    if fh.size > limits.SCAN_MAX_BYTES:
-        fh.close()
-        raise FileFormatError(f"{path}: {fh.size / limits.MB:.1f} MB is over the "
-                              f"{limits.SCAN_MAX_BYTES / limits.MB:.0f} MB limit for a scan")
-    if fh.size == 0:
-        fh.close()
-        raise FileFormatError(f"{path}: the scan is empty (0 bytes)")
-    return fh
-
-
-def _ply_header(path: pathlib.Path, fh: _CappedFile):
+def _ply_header(path: pathlib.Path, fh: limits.CappedFile):
     """plyfile's parse of the header alone (the body is not touched), its counts checked against the
     bytes after it: each row needs at least one byte per value (ascii) or its fixed-size values and
     list lengths (binary)."""
@@ -148,10 +119,8 @@ def _read_ply(path: pathlib.Path) -> tuple[np.ndarray, np.ndarray, bool]:
             if polys.dtype != object and polys.dtype.kind not in "iu":
                 raise FileFormatError(f"{path}: face indices are of type {polys.dtype}, not integers")
             tris = fan_triangles(polys)
-        except FileFormatError:
+        except (FileFormatError, MemoryError):    # out of memory is no fault of the file (batch: exit 1)
             raise
-        except MemoryError:
-            raise FileFormatError(f"{path}: not enough memory to read this PLY") from None
         except Exception as exc:        # plyfile's own errors and whatever a malformed body makes numpy raise
             raise FileFormatError(f"{path}: cannot read as PLY ({exc})") from None
     return verts, tris, False
@@ -210,8 +179,8 @@ def _read_obj(path: pathlib.Path) -> tuple[np.ndarray, np.ndarray, bool]:
         verts, tris = _trimesh_parts(loaded)
     except IndexError as exc:           # trimesh indexes the vertices with the faces as read
         raise FileFormatError(f"{path}: a face refers to a vertex that does not exist ({exc})") from None
-    except MemoryError:
-        raise FileFormatError(f"{path}: not enough memory to read this OBJ") from None
+    except MemoryError:                 # out of memory is no fault of the file (batch: exit 1)
+        raise
     except Exception as exc:            # trimesh's own errors and whatever a malformed line makes numpy raise
         raise FileFormatError(f"{path}: cannot read as OBJ ({type(exc).__name__}: {exc})") from None
     # trimesh splits a vertex per texture coordinate or normal and a mesh per material: weld them back
@@ -236,10 +205,8 @@ def _read_stl(path: pathlib.Path) -> tuple[np.ndarray, np.ndarray, bool]:
                 raise FileFormatError(f"{path}: not an STL file ({why}; an ASCII STL starts with 'solid')")
             loaded = stl.load_stl_ascii(io.StringIO(text))
         verts, tris = _trimesh_parts(loaded)
-    except FileFormatError:
+    except (FileFormatError, MemoryError):
         raise
-    except MemoryError:
-        raise FileFormatError(f"{path}: not enough memory to read this STL") from None
     except Exception as exc:            # trimesh's own errors and whatever a malformed facet makes numpy raise
         raise FileFormatError(f"{path}: cannot read as STL ({type(exc).__name__}: {exc})") from None
     return verts, tris, True            # STL repeats each corner per triangle

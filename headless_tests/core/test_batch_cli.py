@@ -106,6 +106,9 @@ def test_results_are_replaced_only_with_overwrite_and_a_failed_rerun_leaves_no_s
     assert batch("adapt", "--scan", scan, "--landmarks", marks, "--out", out, "--levels", "1").returncode == 0
     report = json.loads((out / "report.json").read_text())
     assert report["status"] == "done"
+    stages = report["stage_seconds"]        # where the time went, without the .blend's transfer and bake
+    assert list(stages) == ["read", "calibrate", "prepare", "level_0", "level_1", "unfold"], stages
+    assert all(s > 0 for s in stages.values()) and sum(stages.values()) <= report["total_seconds"]
     assert report["inputs_sha256"] == {"scan": digest(scan), "landmarks": digest(marks)}
     kept = {p.name: digest(p) for p in out.iterdir()}
     line = one_error_line(batch("adapt", "--scan", scan, "--landmarks", marks, "--out", out, "--levels", "1"))
@@ -163,3 +166,22 @@ def test_a_bug_exits_1_with_the_traceback_in_the_log_and_the_scan_named(tmp_path
     report = json.loads((tmp_path / "out" / "report.json").read_text())
     assert report["status"] == "failed" and "ZeroDivisionError" in report["traceback"]
     assert not (tmp_path / "out" / "adapted_head.obj").exists()
+
+
+@pytest.mark.slow
+def test_a_plain_batch_run_never_imports_blender(tmp_path, inputs):
+    """python -m headadapt_addon.batch adapt without --blend runs with bpy and mathutils unimportable
+    (the spatial backend is numpy's; importing bpy costs about a second of the command)."""
+    scan, marks = inputs
+    out = tmp_path / "out"
+    code = ("import sys\n"
+            "sys.modules['bpy'] = sys.modules['mathutils'] = None   # any import of them raises ImportError\n"
+            "from headadapt_addon.batch import main\n"
+            f"rc = main(['adapt', '--scan', {str(scan)!r}, '--landmarks', {str(marks)!r}, '--out', {str(out)!r},"
+            " '--levels', '1'])\n"
+            "assert sys.modules['bpy'] is None and sys.modules['mathutils'] is None\n"
+            "sys.exit(rc)\n")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, timeout=300)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    report = json.loads((out / "report.json").read_text())
+    assert report["status"] == "done"

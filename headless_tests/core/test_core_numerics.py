@@ -5,6 +5,8 @@ from scipy.spatial import ConvexHull
 from scipy.spatial.transform import Rotation
 
 from headadapt_addon.core.adapt import calibration, metrics, rbf
+from headadapt_addon.core.adapt.fit import ScanSide
+from headadapt_addon.core.adapt.options import AdaptOptions
 from headadapt_addon.core.exceptions import LandmarkError, MeshError
 from headadapt_addon.core.mesh import geometry, spatial
 
@@ -150,8 +152,8 @@ def test_distance_error_is_zero_on_itself_and_ignores_holes(tpl):
     v, t = tpl.skin.verts, tpl.skin.tris
     vn = geometry.vertex_normals(v, t)
     w = tpl.region_weights[tpl.region]
-    q = spatial.MeshQuery(v, t)
-    de = metrics.distance_error(v, vn, q, geometry.face_normals(v, t), w, 0.016)
+    s = ScanSide(v, t, AdaptOptions())
+    de = metrics.distance_error(v, vn, s.query, s.normal_at, w, 0.016)
     assert de.E_d < 1e-12 and de.matched.mean() > 0.99   # 0 up to float32 BVH rounding; folds may pick a face turned away
     # cut a hole in the forehead: the vertices over it get w = 0, E_d stays finite and small
     fore = tpl.region_mask("forehead")
@@ -159,13 +161,13 @@ def test_distance_error_is_zero_on_itself_and_ignores_holes(tpl):
     centre = v[fi[np.argmin(np.linalg.norm(v[fi] - v[fi].mean(axis=0), axis=1))]]   # a forehead vertex
     cut = np.linalg.norm(v[t].mean(axis=1) - centre, axis=1) < 0.015
     holed = t[~cut]
-    qh = spatial.MeshQuery(v, holed)
-    de = metrics.distance_error(v, vn, qh, geometry.face_normals(v, holed), w, 0.016, geometry.boundary_faces(holed))
+    sh = ScanSide(v, holed, AdaptOptions())
+    de = metrics.distance_error(v, vn, sh.query, sh.normal_at, w, 0.016, sh.on_border)
     inside = np.linalg.norm(v - centre, axis=1) < 0.010
     assert inside.sum() > 5 and np.all(de.w[inside] == 0)
     assert np.isfinite(de.E_d) and de.E_d < 1e-8
     # flipped normals never match
-    de = metrics.distance_error(v, -vn, q, geometry.face_normals(v, t), w, 0.016)
+    de = metrics.distance_error(v, -vn, s.query, s.normal_at, w, 0.016)
     assert de.matched.mean() < 0.01
 
 
@@ -189,3 +191,31 @@ def test_unfold_falls_back_to_a_harmonic_patch_where_relaxing_stalls():
     assert np.array_equal(y[~moved], x[~moved])
     # the repair goes back toward x as far as it can: the block keeps part of its push
     assert np.mean(y[block.ravel(), 0] - rest[block.ravel(), 0]) > 0.0005
+
+
+def test_distance_error_does_not_depend_on_which_face_answers_a_tie(tpl):
+    """Points off the skin whose closest point is a vertex or an edge several faces share (over a
+    hole's rim, at a crease): the face that answers is the backend's tie-break (numpy: the face the
+    point is most squarely in front of; Blender's BVH: the first its search meets); whether the
+    point matches must not change."""
+    v, t = tpl.skin.verts, tpl.skin.tris
+    fore = tpl.region_mask("forehead")
+    fi = np.flatnonzero(fore)
+    centre = v[fi[np.argmin(np.linalg.norm(v[fi] - v[fi].mean(axis=0), axis=1))]]
+    holed = t[np.linalg.norm(v[t].mean(axis=1) - centre, axis=1) >= 0.015]
+    vn = geometry.vertex_normals(v, holed)
+    rng = np.random.default_rng(3)
+    # every vertex of the scan, pushed off along a direction tilted from its normal: nearest the vertex
+    # itself (a tie among its faces) wherever the vertex is convex enough
+    used = np.unique(holed)
+    tilt = vn[used] + 0.8 * rng.normal(size=(len(used), 3))
+    pts = v[used] + 0.002 * tilt / np.linalg.norm(tilt, axis=1, keepdims=True)
+    normals = vn[used] + 0.5 * rng.normal(size=(len(used), 3))
+    w = np.ones(len(pts))
+    a, b = ScanSide(v, holed, AdaptOptions(backend="numpy")), ScanSide(v, holed, AdaptOptions(backend="bvh"))
+    fa, fb = a.query.closest_points(pts)[1], b.query.closest_points(pts)[1]
+    assert (fa != fb).sum() > 100                                      # ties answered by other faces
+    da = metrics.distance_error(pts, normals, a.query, a.normal_at, w, 0.016, a.on_border)
+    db = metrics.distance_error(pts, normals, b.query, b.normal_at, w, 0.016, b.on_border)
+    assert 0.2 < da.matched.mean() < 0.95
+    np.testing.assert_array_equal(da.matched, db.matched)

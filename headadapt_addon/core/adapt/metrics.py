@@ -14,18 +14,22 @@ class DistanceError:
     matched: np.ndarray
 
 
-def distance_error(src_verts, src_normals, scan, scan_face_normals, weights, threshold, boundary_faces=None):
+def distance_error(src_verts, src_normals, scan, scan_normal, weights, threshold, border=None):
     """E_d = sum_i w_i dist^2(x_i, scan) / n (eq 22) with the paper's compatibility rule.
 
     A vertex matches the scan when its nearest scan point is within `threshold`, the normals are
-    at most 90 degrees apart and (if given) the nearest face is not on a hole border; unmatched
-    vertices get w = 0 (holes). `weights` are the per-vertex region weights (ears 0.2). Units:
-    those of the inputs (E_d in unit^2).
+    at most 90 degrees apart and (if given) that nearest point is not on a hole's border. Both are
+    judged on the nearest point itself, so which face answers a tie (a vertex or edge several faces
+    share; each spatial backend breaks ties its own way) does not matter: scan_normal is a callable
+    (points (k,3), faces (k,)) -> normals (k,3) continuous across faces (ScanSide.normal_at: the
+    vertex normals interpolated), border a callable (k,3) -> (k,) bool (ScanSide.on_border).
+    Unmatched vertices get w = 0 (holes). `weights` are the per-vertex region weights (ears 0.2).
+    Units: those of the inputs (E_d in unit^2).
     """
-    _, face, dist = scan.closest_points(src_verts)
-    matched = (dist <= threshold) & (np.einsum("ij,ij->i", src_normals, scan_face_normals[face]) > 0)
-    if boundary_faces is not None:
-        matched &= ~boundary_faces[face]
+    near, face, dist = scan.closest_points(src_verts)
+    matched = (dist <= threshold) & (np.einsum("ij,ij->i", src_normals, scan_normal(near, face)) > 0)
+    if border is not None:
+        matched &= ~border(near)
     w = np.where(matched, np.asarray(weights, dtype=float), 0.0)
     return DistanceError(float(np.sum(w * dist ** 2) / len(src_verts)), dist, w, matched)
 

@@ -68,9 +68,9 @@ class AdaptOptions:
                                         # preconditioned CG steps (face-only scans need ~800)
     lu_steps: int = 30                  # ... and refactorises when CG preconditioned by that LU takes more
     solve_rtol: float = 1e-5            # relative residual of a level's solve
-    backend: str = "bvh"                # spatial queries: "bvh" (Blender's mathutils BVH: in Blender or beside
-                                        # the bpy module) or "numpy" (exact scipy kd-trees, no Blender needed;
-                                        # same answers but up to tie-breaks, 6x slower on a 31k-vertex scan)
+    backend: str = "numpy"              # spatial queries: "numpy" (core/mesh/bvh.py: exact, no Blender, as fast
+                                        # as Blender's) or "bvh" (Blender's mathutils BVH: in Blender or beside
+                                        # the bpy module; same answers up to float32 rounding and tie-breaks)
 
 
 @dataclasses.dataclass
@@ -108,6 +108,8 @@ class AdaptResult:
     outcome: dict = None              # how it ended: folds left, seen-skin RMS, marker RMS, warnings, ok
     anatomy_support: float = 0.0      # map_points uses the levels with at least this support, m
     backend: str = "numpy"            # the spatial backend of the fit (AdaptOptions.backend), for the transfer
+    stages: dict = None               # seconds per stage: calibrate, prepare (the scan's queries, normals,
+                                      # curvature), level_0.., unfold (with the exact distances reported)
 
     def map_points(self, points):
         """Carry template-frame points (k,3) inside the head (bone, eyes, pivots) through the
@@ -130,6 +132,7 @@ class AdaptResult:
             "stopped_because": (f"E reached its minimum at level {self.best_level}"
                                 if self.best_level < self.levels[-1].level else "last level reached"),
             "seconds": self.seconds,
+            "stage_seconds": self.stages or {},
             "calibration": self.calibration_info,
             "flagged_fdps": self.flagged,
             "dropped_fdps": self.dropped,

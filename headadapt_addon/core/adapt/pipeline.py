@@ -46,6 +46,7 @@ def adapt(tpl: Template, scan_verts: np.ndarray, scan_tris: np.ndarray, scan_fdp
     say(0.02, "calibrating")
     fit, tpl_fdps, q_fdp, sim, cal_info = calibrate(tpl, scan_verts, scan_tris, scan_fdps, options)
     check_on_surface(fit.scan, q_fdp, options)
+    t_cal = time.perf_counter() - t_start
 
     # 2. level 0 (sec 3.2), after wrong-click detection
     say(0.08, "level 0: the global map onto the scan and the clicks")
@@ -93,6 +94,7 @@ def adapt(tpl: Template, scan_verts: np.ndarray, scan_tris: np.ndarray, scan_fdp
 
     # 4. where the scan has no room for the template's detail (closed eyes under open lids) the fit
     # folds a few triangles over: relax the displacement around them until none is folded
+    t0 = time.perf_counter()
     n_folded = len(geometry.folded(fit.V, best_verts, fit.tris))
     verts, moved, left = geometry.unfold(fit.V, best_verts, fit.tris)
     # the distances reported: exact closest points on the scan, by the paper's compatibility rule
@@ -103,11 +105,16 @@ def adapt(tpl: Template, scan_verts: np.ndarray, scan_tris: np.ndarray, scan_fdp
     outcome = fit_outcome(best_dist, face, left, judge.marker_rms_mm(best_funcs), flagged, options,
                           cal_info["handedness"]["notes"])
     say(1.0, f"done: best level {best}")
+    # the scan's preparation (ScanSide: built in calibrate, curvature on first use in level 1) apart
+    prep = fit.scan.seconds
+    stages = {"calibrate": t_cal - prep["build"], "prepare": prep["build"] + prep["curvature"],
+              **{f"level_{lv.level}": lv.seconds - (prep["curvature"] if lv.level == 1 else 0.0) for lv in levels},
+              "unfold": time.perf_counter() - t0}
     return AdaptResult(verts=verts, verts_scan=sim.inverse().apply(verts), similarity=sim, levels=levels,
                        best_level=best, functions=best_funcs, flagged=flagged, dropped=dropped,
                        calibration_info=cal_info, seconds=time.perf_counter() - t_start, distances=best_dist,
                        scan=fit.scan, unfolded=unfolded, outcome=outcome, anatomy_support=options.anatomy_support,
-                       backend=options.backend)
+                       backend=options.backend, stages=stages)
 
 
 def calibrate(tpl: Template, scan_verts: np.ndarray, scan_tris: np.ndarray, scan_fdps: dict[str, np.ndarray],

@@ -213,3 +213,31 @@ def unrelax_under_skin(tpl, parts, pressed, radius=0.008, skin_inside=None, bone
     bone[back] = np.vstack([pressed["cranium"], pressed["mandible"]])[back]
     return clear_visible_skin(tpl, parts["skin"], bone[:n_cr], bone[n_cr:],
                               skin_inside=skin_inside, bone_inside=bone_inside)
+
+
+def lift_visible_skin(tpl, skin, cranium, mandible, most=0.0005, clearance=0.0001, bone_inside=None):
+    """The last guarantee of the transfer: a visible skin vertex still inside the bone after the bone
+    was cleared (clear_visible_skin freezes bone by a pocket: a lid at the orbit's opening) steps out
+    along its own outward normal, at most `most` (0.5 mm: a sliver of bone rim, not a fit gone wrong),
+    to `clearance` outside. Returns (skin (n,3), the vertices moved, those still inside)."""
+    from ..mesh.geometry import vertex_normals
+
+    bone = np.vstack([cranium, mandible])
+    if bone_inside is None:
+        bone_inside = winding.FastWinding(bone, tpl.skull_tris)
+    inside = bone_inside.refit(bone)
+    visible = np.flatnonzero(~tpl.hidden)
+    bad = visible[inside(skin[visible]) > 0.5]
+    if not len(bad):
+        return skin, bad, bad
+    normals = vertex_normals(skin, tpl.skin.tris)[bad]
+    lo, hi = np.zeros(len(bad)), np.full(len(bad), most)
+    out_at_most = inside(skin[bad] + most * normals) <= 0.5
+    for _ in range(12):                       # bisection to the bone's surface along the normal
+        mid = 0.5 * (lo + hi)
+        out = inside(skin[bad] + mid[:, None] * normals) <= 0.5
+        hi, lo = np.where(out, mid, hi), np.where(out, lo, mid)
+    skin = skin.copy()
+    move = bad[out_at_most]
+    skin[move] += (np.minimum(hi[out_at_most] + clearance, most))[:, None] * normals[out_at_most]
+    return skin, move, bad[~out_at_most]

@@ -10,7 +10,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ..mesh import geometry
-from ..mesh.inside import winding_numbers
+from ..mesh.winding import FastWinding
 from ..tol import TINY
 
 UNFOLD_STEPS = 80                     # most local relaxation steps against folded triangles
@@ -18,6 +18,7 @@ CONTACT_ROUNDS = 4                    # pushes per contact step (a point at a bo
 OPENING_REACH = 0.01                  # bone faces this close to a hole of the bone are 'by an opening', m
 RETRACT_STEPS = 8                     # bisection steps of the last guard against penetration
 NON_PENETRATION = 0.001               # skin stays at least this far outside the bone, m
+JAW_SLACK = 0.002                     # the bone's winding grid is rebuilt once the jaw moved this far, m
 
 
 
@@ -64,7 +65,15 @@ class ContactMixin:
     def _winding(self, pts, rot, t):
         """Winding number (k,) of skin points (k,3) in the bone (cranium, mandible at (rot, t))."""
         _, _, v_cr, v_md, bone_t = self.bone
-        return winding_numbers(pts, np.vstack([v_cr, self.on_jaw(v_md, rot, t)]), bone_t)
+        verts = np.vstack([v_cr, self.on_jaw(v_md, rot, t)])
+        # exact fast winding numbers (core/mesh/winding.py, the brute force's up to rounding), the
+        # bone closed once per model and refit as the jaw moves
+        fast = self.__dict__.get("_bone_winding")
+        if fast is None or fast.tris is not bone_t and not np.array_equal(fast.tris, bone_t):
+            fast = self.__dict__["_bone_winding"] = FastWinding(verts, bone_t, slack=JAW_SLACK)
+        else:
+            fast.refit(verts)
+        return fast(pts)
 
     def _inside(self, pts, rot, t):
         """Whether skin points (k,3) are inside the bone (cranium and the mandible at (rot, t))."""
