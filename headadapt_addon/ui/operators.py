@@ -398,7 +398,9 @@ CALIBRATION_RMS_LIMIT = 0.05     # of the head's width: people's faces differ fr
 
 def head_size_mm():
     """The template head's width (ear to ear), mm: what calibration residuals are judged against."""
-    return float(template().skin.verts[:, 0].ptp()) * 1000.0
+    import numpy as np
+
+    return float(np.ptp(template().skin.verts[:, 0])) * 1000.0
 
 
 def unit_hint(verts, pts):

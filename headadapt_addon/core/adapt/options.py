@@ -62,12 +62,15 @@ class AdaptOptions:
     anatomy_support: float = 0.024      # bone, eyes and pivots follow the levels of at least this support, m
     bad_fit_rms_mm: float = 1.5         # seen-skin distance RMS above this is a failed fit: 3x the
                                         # noise of a range scanner (0.1-0.5 mm), mm
-    dense_spacing: float = 0.002        # a scan whose median edge is shorter is paired by its vertices'
-                                        # tangent planes (off by under 0.05 mm there), not closest points, m
+    dense_spacing: float = 0.003        # a scan whose median edge is shorter is paired by its vertices'
+                                        # tangent planes (off by curvature x spacing^2 / 2: under 0.1 mm at 3 mm
+                                        # on a face), not exact closest points (2-3 mm heads: two thirds the time), m
     jacobi_steps: int = 250             # a level's solve factorises (sparse LU) after this many diagonal-
                                         # preconditioned CG steps (face-only scans need ~800)
     lu_steps: int = 30                  # ... and refactorises when CG preconditioned by that LU takes more
-    solve_rtol: float = 1e-5            # relative residual of a level's solve
+    solve_rtol: float = 1e-5            # relative residual of a level's solve (1e-3 fitted the skin as well,
+                                        # 19% faster, but the skull pressed under that skin folded 23 triangles
+                                        # instead of 9 on legacy head 7: the transfer is that sensitive)
     backend: str = "numpy"              # spatial queries: "numpy" (core/mesh/bvh.py: exact, no Blender, as fast
                                         # as Blender's) or "bvh" (Blender's mathutils BVH: in Blender or beside
                                         # the bpy module; same answers up to float32 rounding and tie-breaks)
