@@ -62,9 +62,10 @@ class AdaptOptions:
     anatomy_support: float = 0.024      # bone, eyes and pivots follow the levels of at least this support, m
     bad_fit_rms_mm: float = 1.5         # seen-skin distance RMS above this is a failed fit: 3x the
                                         # noise of a range scanner (0.1-0.5 mm), mm
-    dense_spacing: float = 0.003        # a scan whose median edge is shorter is paired by its vertices'
-                                        # tangent planes (off by curvature x spacing^2 / 2: under 0.1 mm at 3 mm
-                                        # on a face), not exact closest points (2-3 mm heads: two thirds the time), m
+    dense_spacing: float = 0.002        # a scan whose median edge is shorter is paired by its vertices'
+                                        # tangent planes (off by under 0.05 mm there), not closest points, m
+                                        # (3 mm adapted 2-3 mm heads in two thirds the time, as accurately, but
+                                        # left a lid vertex of the CT 0.7 mm inside its transferred skull)
     jacobi_steps: int = 250             # a level's solve factorises (sparse LU) after this many diagonal-
                                         # preconditioned CG steps (face-only scans need ~800)
     lu_steps: int = 30                  # ... and refactorises when CG preconditioned by that LU takes more
