@@ -141,6 +141,7 @@ class Fit:
         self.seam = lip_seam(tpl)
         self.near_seam = cKDTree(self.V[self.seam]).query(self.V, distance_upper_bound=options.seam_band)[0] < np.inf
         self.functions = []
+        self.level0_memo = None     # (the clicks' bytes, level 0's map) of the last level-0 fit
         self.folds = geometry.FoldCheck(self.V, self.tris)
         adjacency = geometry.neighbour_mean(self.tris, len(self.V))
         self.ring = (adjacency + sparse.identity(len(self.V))).tocsr()   # a vertex and its neighbours
@@ -156,13 +157,18 @@ class Fit:
 
     def distance_error(self, verts, exact=False):
         """metrics.DistanceError of skin positions (n,3) against the scan (sec 5.1): nearest points
-        by the scan's tangent planes while fitting (exact=False), exact closest points to report."""
+        by the scan's tangent planes while fitting (exact=False: only the vertices E_d weighs; the
+        others unmatched), exact closest points to report."""
         normals = geometry.vertex_normals(verts, self.tris)
         if exact:
             return metrics.distance_error(verts, normals, self.scan.query, self.scan.normal_at, self.vert_w,
                                           self.threshold, self.scan.on_border)
-        _, n, d, border = self.scan.nearest_on_plane(verts)
-        matched = (d <= self.threshold) & (np.einsum("ij,ij->i", normals, n) > 0) & ~border
+        # only the vertices E_d weighs are looked up (the rest: unmatched, distance 0, weight 0)
+        use = np.flatnonzero(self.vert_w > 0)
+        d = np.zeros(len(verts))
+        matched = np.zeros(len(verts), bool)
+        _, n, d[use], border = self.scan.nearest_on_plane(verts[use])
+        matched[use] = (d[use] <= self.threshold) & (np.einsum("ij,ij->i", normals[use], n) > 0) & ~border
         w = np.where(matched, self.vert_w, 0.0)
         return metrics.DistanceError(float(np.sum(w * d ** 2) / len(verts)), d, w, matched)
 
