@@ -50,11 +50,12 @@ def test_the_skull_stays_inside_the_adapted_skin(tpl, transferred):
 
 def test_the_skull_keeps_its_shape(tpl, transferred):
     # pressing each bone point under its own skin point folded ~85 cranium triangles (orbit
-    # floors, cheeks) on these heads; relaxed, at most a handful stay turned
+    # floors, cheeks) on these heads; relaxed, at most a handful stay turned; clearing the lids off
+    # the orbit's rim turned 9 over on head 7 until bone.relax_cleared relaxed them too (0 now)
     for _, _, ana in transferred:
         for bone in ("cranium", "mandible"):
             folds = geometry.folded(tpl.parts[bone].verts, ana.parts[bone], tpl.parts[bone].tris)
-            assert len(folds) <= 10, (bone, len(folds))
+            assert len(folds) <= 2, (bone, len(folds))
 
 
 def test_eyes_sit_in_their_sockets(tpl, transferred):

@@ -215,6 +215,52 @@ def unrelax_under_skin(tpl, parts, pressed, radius=0.008, skin_inside=None, bone
                               skin_inside=skin_inside, bone_inside=bone_inside)
 
 
+def relax_cleared(tpl, parts, skin_inside, bone_inside, radius=0.008):
+    """(cranium, mandible) with the folds that clearing the visible skin left (clear_visible_skin
+    pushes the bone by a rim point 1 mm a step, fading over `radius`: neighbours pushed unequally
+    turn triangles over) relaxed by geometry.unfold, where that keeps the bone inside the skin
+    and every visible skin vertex outside the bone; bone near a skin vertex the relaxation would
+    put inside keeps its cleared place (the nearest first: radius/4, /2, then radius; else all of it),
+    so no visible vertex is inside the bone that was not before."""
+    from scipy.spatial import cKDTree
+
+    from ..mesh.geometry import folded, unfold
+
+    bone = {name: parts[name].copy() for name in ("cranium", "mandible")}
+    for name in bone:
+        rest, tris = tpl.parts[name].verts, tpl.parts[name].tris
+        if not len(folded(rest, bone[name], tris)):
+            continue
+        relaxed, moved, _ = unfold(rest, bone[name], tris)
+        out = moved & (skin_inside(relaxed) < 0.5)          # relaxed out of the skin: keep the cleared place
+        relaxed[out] = bone[name][out]
+        bone[name] = relaxed
+    both = np.vstack([bone["cranium"], bone["mandible"]])
+    cleared = np.vstack([parts["cranium"], parts["mandible"]])
+    visible = np.flatnonzero(~tpl.hidden)
+
+    def inside(b):
+        return visible[bone_inside.refit(b)(parts["skin"][visible]) > 0.5]
+
+    before = inside(cleared)                               # left to lift_visible_skin as they were
+
+    def new_inside(b):
+        found = inside(b)
+        return found[~np.isin(found, before)]
+
+    for reach in (0.25 * radius, 0.5 * radius, radius):     # the narrowest give-back that clears the skin
+        bad = new_inside(both)
+        if not len(bad):
+            break
+        back = cKDTree(parts["skin"][bad]).query(both, distance_upper_bound=reach)[0] < np.inf
+        both[back] = cleared[back]
+    else:
+        if len(new_inside(both)):                          # none of it, then
+            both = cleared.copy()
+    n_cr = len(parts["cranium"])
+    return both[:n_cr], both[n_cr:]
+
+
 def lift_visible_skin(tpl, skin, cranium, mandible, most=0.0005, clearance=0.0001, bone_inside=None):
     """The last guarantee of the transfer: a visible skin vertex still inside the bone after the bone
     was cleared (clear_visible_skin freezes bone by a pocket: a lid at the orbit's opening) steps out

@@ -8,7 +8,7 @@ from .. import mpeg4
 from ..adapt.options import AdaptResult
 from ..mesh import geometry, winding
 from ..template import Template
-from .bone import clear_visible_skin, keep_inside, lift_visible_skin, unrelax_under_skin
+from .bone import clear_visible_skin, keep_inside, lift_visible_skin, relax_cleared, unrelax_under_skin
 from .model import Anatomy
 from .rigid import RIGID_FDPS, rigid_from_fdps, seat_orbits, surface_point
 
@@ -50,6 +50,7 @@ def transfer(tpl: Template, result: AdaptResult) -> Anatomy:
                                                              skin_inside=skin_inside, bone_inside=bone_inside)
     parts["cranium"], parts["mandible"] = unrelax_under_skin(tpl, parts, pressed, skin_inside=skin_inside,
                                                               bone_inside=bone_inside)
+    parts["cranium"], parts["mandible"] = relax_cleared(tpl, parts, skin_inside, bone_inside)
     parts["skin"] = lift_visible_skin(tpl, parts["skin"], parts["cranium"], parts["mandible"],
                                       bone_inside=bone_inside)[0]
     for name, ref in tpl.meta["fdps"].items():
