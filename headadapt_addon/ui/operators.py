@@ -9,6 +9,7 @@ import json
 import pathlib
 
 import bpy
+import numpy as np
 from bpy_extras.io_utils import ExportHelper, ImportHelper
 
 from ..blender import bridge, landmarks, scene
@@ -398,15 +399,12 @@ CALIBRATION_RMS_LIMIT = 0.05     # of the head's width: people's faces differ fr
 
 def head_size_mm():
     """The template head's width (ear to ear), mm: what calibration residuals are judged against."""
-    import numpy as np
-
     return float(np.ptp(template().skin.verts[:, 0])) * 1000.0
 
 
 def unit_hint(verts, pts):
     """A sentence naming a unit mismatch when the landmarks' spread and the scan's size differ by more
     than a factor of 5 (clicks span about 2/3 of a head scan), else ''."""
-    import numpy as np
     p = np.array(list(pts.values()), dtype=float).reshape(-1, 3)
     if len(p) < 2 or len(verts) == 0 or not np.isfinite(p).all():
         return ""

@@ -227,6 +227,7 @@ def relax_cleared(tpl, parts, skin_inside, bone_inside, radius=0.008):
     from ..mesh.geometry import folded, unfold
 
     bone = {name: parts[name].copy() for name in ("cranium", "mandible")}
+    relaxed_any = False
     for name in bone:
         rest, tris = tpl.parts[name].verts, tpl.parts[name].tris
         if not len(folded(rest, bone[name], tris)):
@@ -235,6 +236,9 @@ def relax_cleared(tpl, parts, skin_inside, bone_inside, radius=0.008):
         out = moved & (skin_inside(relaxed) < 0.5)          # relaxed out of the skin: keep the cleared place
         relaxed[out] = bone[name][out]
         bone[name] = relaxed
+        relaxed_any = True
+    if not relaxed_any:                                    # nothing folded: nothing to check
+        return parts["cranium"], parts["mandible"]
     both = np.vstack([bone["cranium"], bone["mandible"]])
     cleared = np.vstack([parts["cranium"], parts["mandible"]])
     visible = np.flatnonzero(~tpl.hidden)
