@@ -52,13 +52,14 @@ PRIMARY = {
     "mouthUpperUpLeft": ("levator_labii_superioris_l", "zygomaticus_minor_l"),
     "mouthLowerDownLeft": ("depressor_labii_inferioris_l",),
     "mouthLeft": ("zygomaticus_major_l", "risorius_l", "buccinator_l", "orbicularis_oris"),
-    "noseSneerLeft": ("levator_labii_superioris_l", "nasalis_l", "corrugator_l"),
-    "cheekSquintLeft": ("orbicularis_oculi_l", "zygomaticus_minor_l", "zygomaticus_major_l", "lower_lid_l"),
-    "eyeSquintLeft": ("orbicularis_oculi_l", "lower_lid_l"),
+    "noseSneerLeft": ("levator_alaeque_nasi_l", "depressor_supercilii_l", "corrugator_l", "nasalis_l",
+                      "levator_labii_superioris_l"),
+    "cheekSquintLeft": ("cheek_raiser_l", "orbicularis_oculi_l", "lower_lid_l"),
+    "eyeSquintLeft": ("orbicularis_oculi_l", "lower_lid_l", "cheek_raiser_l"),
     "eyeWideLeft": ("upper_lid_raise_l", "frontalis_inner_l", "frontalis_outer_l"),
     "eyeLookUpLeft": ("upper_lid_raise_l", "lower_lid_l"),
     "eyeLookDownLeft": ("upper_lid_l", "lower_lid_drop_l"),
-    "browDownLeft": ("corrugator_l", "orbicularis_oculi_l"),
+    "browDownLeft": ("corrugator_l", "depressor_supercilii_l", "orbicularis_oculi_l"),
     "browOuterUpLeft": ("frontalis_outer_l",),
     "browInnerUp": ("frontalis_inner_l",),
     "jawOpen": ("jaw_open", "depressor_labii_inferioris_l"),
@@ -100,13 +101,16 @@ REASONS = {
     "mouthShrugLower": "the mentalis lifts the chin but does not push the lower lip up and out as far",
     "mouthLowerDownLeft": "the depressor labii pulls the lower lip down, but not as far toward the corner",
     "mouthUpperUpLeft": "the levator labii lifts the upper lip, but not the lip's side as far as the artist",
-    "browDownLeft": "the corrugator pulls the brows together and down; the brow's drop over the eye "
-                    "(procerus, orbicularis oculi's orbital part) has no control",
+    "browDownLeft": "the corrugator and the depressor supercilii pull the brow's inner half down and in; "
+                    "the brow's drop over the eye's outer half (orbicularis oculi's orbital part above the "
+                    "eye) has no control",
     "browInnerUp": "the frontalis' fall-off spreads the lift over the forehead; the artist lifts the brow itself",
     "browOuterUpLeft": "the frontalis' fall-off spreads the lift over the forehead; the artist lifts the brow itself",
-    "cheekSquintLeft": "no control lifts the cheek under the eye (orbicularis oculi's orbital part)",
-    "noseSneerLeft": "no control lifts the nose's wing and the skin beside it (levator labii superioris "
-                     "alaeque nasi)",
+    "cheekSquintLeft": "the cheek raiser lifts the cheek under the eye, but not the lower lid's own "
+                       "tightening with it",
+    "noseSneerLeft": "the levator alaeque nasi lifts the nose's wing and the depressor supercilii drops the "
+                     "brow's inner end, but the artist's sneer also draws the cheek beside the nose in "
+                     "toward it, which no control does",
 }
 WHY_NOT = {
     "tongueOut": "faceunits01's tongueOut moves no skin; the template's tongue is a rigid stand-in, "

@@ -25,7 +25,7 @@ from headadapt_addon.core.skin import bake, drive  # noqa: E402
 from headadapt_addon.core.template import load_template  # noqa: E402
 from tools import render_pictures, testheads  # noqa: E402
 
-ARKIT_SHOWN = ("jawOpen", "mouthSmileLeft", "mouthPucker", "mouthFunnel", "browInnerUp", "cheekPuff",
+ARKIT_SHOWN = ("jawOpen", "mouthSmileLeft", "mouthPucker", "cheekSquintLeft", "browInnerUp", "cheekPuff",
                "mouthFrownLeft", "jawLeft")
 CELL = (190, 220)
 ORTHO = 0.215                   # the view's height, m

@@ -95,9 +95,10 @@ def test_lids_close_the_eye_on_adapted_heads(tpl, legacy_heads, seed):
         # known, seed 3's left upper lid alone: the placed lid closes the eye (gap 0), but the
         # canthus the plate finds (where the margins' edges join) lies 4.8 mm lateral of the clicked
         # inner corner 3.11, so the turn ramps from 0 to 41% across one 3 mm triangle, which folds
-        # (2 triangles); the unfold relaxation, growing its patch until the fold is gone, smooths
-        # the closed margin back up to 6.9 mm. Holding the plate's skin during the unfold leaves
-        # folds (6 here, 27 in surprise): tried, not kept. A blink (both lids) closes it.
+        # (2 triangles); the unfold relaxation around the fold opens the closed margin back up to
+        # 5.0 mm (6.9 mm when its patch still grew over all the skin it had touched). Holding the
+        # plate's skin during the unfold leaves folds (6 here, 27 in surprise): tried, not kept. A
+        # blink (both lids) closes it.
         pytest.xfail(f"upper lid alone leaves the eye open on seed {seed}: {open_}")
 
 
@@ -118,21 +119,37 @@ def test_every_shipped_expression_and_viseme_has_an_artist_reference():
 
 @pytest.mark.slow
 def test_the_six_expressions_match_their_artist_references(tpl, model, refs):
-    """Cosine >= 0.8 and magnitude 0.7-1.3 (issue 21) where the model reaches it; joy and disgust
-    have the figures the model reaches (the smile saturates on the lip corners' contact; the
-    reference's nose sneer and upper-lip raise have no muscle of their own), kept from regressing."""
+    """Cosine >= 0.8 and magnitude 0.7-1.3 (issue 21) for each of the six, mirror-symmetric, no fold
+    (joy reached 0.75 and disgust 0.66 before the cheek raiser, levator alaeque nasi and depressor
+    supercilii, controls.SHEET_MUSCLES)."""
     vis = ~tpl.hidden
     v0 = tpl.skin.verts
     mir = tpl.skin_mirror
-    floor = {"joy": 0.74, "disgust": 0.64}
     for name, recipe in drive.EXPRESSION_RECIPES.items():
         x = model.equilibrium(recipe)
         cos, ratio = bench.compare(x - v0, bench.reference_field(refs, name), vis)
-        assert cos >= floor.get(name, 0.8), (name, cos)
+        assert cos >= 0.8, (name, cos)
         assert 0.7 <= ratio <= 1.3, (name, ratio)
         d = x - v0
         assert np.abs(d[mir] * [-1, 1, 1] - d).max() < 0.5e-3, name          # mirror-symmetric
         assert len(model.flipped(x)) == 0, name
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("seed", [7, 3, 11])
+def test_the_six_expressions_keep_direction_and_size_on_adapted_heads(tpl, legacy_heads, refs, seed):
+    """The six at 1 on a generated head, against their references carried over by the shared
+    topology: cosine >= 0.8, ratio 0.7-1.3, no fold (before the cheek raiser and the fold
+    relaxation around the folds only: joy 0.67-0.77, disgust 0.63-0.67; a smile flattened to 0.4
+    of its size on some heads)."""
+    _, _, ana = legacy_heads(seed)
+    m = build_skin(tpl, ana)
+    rest = ana.parts["skin"]
+    for name, recipe in drive.EXPRESSION_RECIPES.items():
+        x = m.equilibrium(recipe)
+        cos, ratio = bench.compare(x - rest, bench.reference_field(refs, name), ~tpl.hidden)
+        assert cos >= 0.8 and 0.7 <= ratio <= 1.3, (seed, name, round(cos, 3), round(ratio, 2))
+        assert len(m.flipped(x)) == 0, (seed, name)
 
 
 def test_the_benchmark_judges_a_key(tpl, model):

@@ -9,7 +9,7 @@ from scipy.sparse.linalg import splu
 from ..mesh import geometry, spatial
 from ..tol import TINY
 from .contact import NON_PENETRATION, near_opening
-from .controls import lid_controls, muscle_forces, pressure_controls
+from .controls import lid_controls, muscle_forces, pressure_controls, sheet_muscles
 from .jaw import JAW_STIFFNESS
 from .model import SkinModel
 
@@ -97,6 +97,7 @@ def build(tpl, anatomy=None):
 
     forces = muscle_forces(tpl, rest, normals, n, muscles, sphincters)
     forces.update(pressure_controls(tpl, skin, normals, fdps, n))
+    forces.update(sheet_muscles(tpl, skin, normals, fdps, n))
 
     rest_gap = np.einsum("ij,ij->i", skin - closest, bone_fn)
     jaw = tpl.meta["jaw"]

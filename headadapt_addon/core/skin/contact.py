@@ -14,6 +14,10 @@ from ..mesh.winding import FastWinding
 from ..tol import TINY
 
 UNFOLD_STEPS = 80                     # most local relaxation steps against folded triangles
+UNFOLD_RINGS = 8                      # rings relaxed around a fold: one more per step it stays folded, up
+                                      # to this many; then the patch also gives back its displacement
+UNFOLD_GIVE = 0.99                    # share of the displacement kept per Jacobi step, to the power of the
+                                      # steps a fold has outlasted UNFOLD_RINGS (the rest shape has no fold)
 CONTACT_ROUNDS = 4                    # pushes per contact step (a point at a bone opening may need more)
 OPENING_REACH = 0.01                  # bone faces this close to a hole of the bone are 'by an opening', m
 RETRACT_STEPS = 8                     # bisection steps of the last guard against penetration
@@ -145,27 +149,57 @@ class ContactMixin:
         frac[bad] = np.minimum(hi + self.clearance[bad] / span, 1.0)
         for _ in range(3):                     # neighbours give up part of theirs too
             frac = np.maximum(frac, 0.6 * (self.adjacency @ frac)) * self.free
-        return x + frac[:, None] * (home - x)
+        y = x + frac[:, None] * (home - x)
+        # ... unless their way home crosses the bone (skin lying on a curved bone; Fran's lip corner
+        # put 2 vertices 0.1 mm from the cranium 1 mm into it): those stay where they were, outside
+        spread = np.flatnonzero(frac > 0)
+        spread = spread[~np.isin(spread, bad)]
+        if len(spread):
+            crossed = spread[self._inside(y[spread], rot, t)]
+            y[crossed] = x[crossed]
+        return y
 
     def _unfold(self, x, contact):
         """Relax the displacement around folded triangles (Jacobi steps toward the neighbours' mean).
 
         Springs that only resist stretch let tiny triangles (lip corners, lid margins) fold under
-        concentrated pulls; a few local smoothing steps of the displacement field undo that.
+        concentrated pulls; a few local smoothing steps of the displacement field undo that. Only
+        the skin around the triangles still folded is relaxed, one ring more per step a fold
+        persists, up to UNFOLD_RINGS, after which the patch also gives back displacement
+        (UNFOLD_GIVE). Relaxing the whole patch ever touched, grown every step, spread a last
+        stubborn fold's relaxation over the whole face and flattened the key (a smile on a
+        generated head to 0.4 of its size).
         """
         rest = self.rest[: self.n]
-        patch = np.zeros(self.n, bool)
+        age = np.zeros(self.n)
+        changed = np.zeros(self.n, bool)          # skin the relaxation moved since its last full look
         for _ in range(UNFOLD_STEPS):
             bad = self.flipped(x)
             if not len(bad):
-                break
-            patch[self.tris[bad].ravel()] = True
-            patch |= (self.adjacency @ patch.astype(float)) > 0        # the patch grows until it unfolds
+                if not changed.any():
+                    break
+                # the pushes and give-backs reach a few rings past the patch they looked at: one
+                # look over all the skin the relaxation moved (Fran's lip corner left 2 vertices
+                # 0.1 mm inside the cranium), then again round if that look folded a triangle
+                before = x.copy()
+                x = self._retract_from_bone(self._keep_out_of_bone(x, contact, changed), contact, changed)
+                changed = (x != before).any(axis=1)
+                continue
+            corners = np.unique(self.tris[bad])
+            age[corners] += 1
+            patch = np.zeros(self.n, bool)
+            patch[corners] = True
+            stuck = age[corners].max()
+            for _ in range(int(min(stuck, UNFOLD_RINGS))):
+                patch |= (self.adjacency @ patch.astype(float)) > 0
+            keep = UNFOLD_GIVE ** max(stuck - UNFOLD_RINGS, 0.0)
+            before = x.copy()
             for _ in range(10):
                 u = x - rest
-                x[patch] = rest[patch] + (self.adjacency @ u)[patch]
+                x[patch] = rest[patch] + keep * (self.adjacency @ u)[patch]
             moved = patch | (self.adjacency @ patch.astype(float) > 0)
             x = self._retract_from_bone(self._keep_out_of_bone(x, contact, moved), contact, moved)
+            changed |= (x != before).any(axis=1)
         return x
 
 

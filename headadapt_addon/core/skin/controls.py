@@ -23,6 +23,22 @@ PUFF_REGIONS = ("cheek_l", "mouth_interior")
 PUFF_FORWARD = 3.0
 FUNNEL_FORWARD = 1.0
 PUFF_OFFSET, PUFF_RADIUS = 0.5, 0.9  # puff centre beside the lip corner and reach, in mouth widths
+# Muscles spread over a sheet of skin, each a force field on the hypodermis of one side: (centre,
+# reach in mouth widths, fall-off power, pull, regions). A centre or a pull point is an FDP, or
+# (a, b, t) the point a + t (b - a); a pull is toward a point, or a fixed direction (x, y, z) for
+# the left side. Placed after FACS's action units on the faceunits01 shapes they make:
+SHEET_MUSCLES = {
+    # AU6, the cheek raised: orbicularis oculi's orbital part lifts the cheek's fat pad under the
+    # eye, the whole cheek from the lid down to the nose's wing, up and a little out
+    "cheek_raiser": (("5.3", "5.1", 0.3), 0.8, 1.0, (0.15, 0.0, 1.0), ("cheek_l", "eyelid_l")),
+    # AU9, the nose wrinkled: levator labii superioris alaeque nasi, from the maxilla's frontal
+    # process beside the nose bridge to the nose's wing and the lip under it
+    "levator_alaeque_nasi": (("9.1", "3.11", 0.1), 0.35, 2.0, ("3.11", "9.1", 0.4),
+                             ("nose", "cheek_l", "upper_lip")),
+    # AU4's inner part (with AU9): depressor supercilii and procerus pull the brow's inner end
+    # down and in toward the nose bone
+    "depressor_supercilii": ("4.1", 0.45, 1.0, "9.12", ("brow_l", "forehead", "nose", "eyelid_l")),
+}
 
 # Pull of each control at activation 1 (total force, stiffness units x m; angles in degrees,
 # slides in m). Fitted so that activation 1 is about the amplitude of the matching ARKit face
@@ -34,6 +50,7 @@ STRENGTH = {
     "mentalis": 3.0, "buccinator": 0.6, "nasalis": 0.4,
     "orbicularis_oris": 0.8, "orbicularis_oculi": 0.6,
     "cheek_puff": 0.8, "lip_push": 0.5, "lip_funnel": 0.6, "depressor_septi": 1.0,
+    "cheek_raiser": 1.1, "levator_alaeque_nasi": 0.65, "depressor_supercilii": 0.45,
 }
 
 
@@ -131,6 +148,36 @@ def pressure_controls(tpl, skin, normals, fdps, n):
     d = np.linalg.norm(skin - fdps["9.15"], axis=1)
     w = np.clip(1 - d / (0.5 * mw), 0, 1) * tpl.region_mask("nose")
     out["depressor_septi"] = _normalised(hyp, np.tile([0.0, 0.0, -1.0], (n, 1)), w, strength_of("depressor_septi"))
+    return out
+
+
+def _point(fdps, spec):
+    if isinstance(spec, str):
+        return fdps[spec]
+    a, b, t = spec
+    return fdps[a] + t * (fdps[b] - fdps[a])
+
+
+def sheet_muscles(tpl, skin, normals, fdps, n):
+    """The SHEET_MUSCLES on the hypodermis at activation 1, left (from the left FDPs) and right
+    (mirrored): {name_l / name_r: (dof index, force (k,3))}. A force is the pull along the skin,
+    weighted (1 - distance / reach) ** power from the centre, inside the regions, on the left side
+    (half on the midline)."""
+    out = {}
+    mw = np.linalg.norm(fdps["8.3"] - fdps["8.4"])
+    side_l = np.clip(0.5 + skin[:, 0] / 1e-3, 0, 1)
+    for name, (centre, reach, power, pull, regions) in SHEET_MUSCLES.items():
+        d = np.linalg.norm(skin - _point(fdps, centre), axis=1)
+        w = np.clip(1 - d / (reach * mw), 0, 1) ** power * tpl.region_mask(*regions) * side_l
+        if isinstance(pull, tuple) and len(pull) == 3 and not isinstance(pull[0], str):
+            direction = np.tile(np.asarray(pull, dtype=float), (n, 1))
+        else:
+            direction = _point(fdps, pull) - skin
+        direction -= np.einsum("ij,ij->i", direction, normals)[:, None] * normals
+        direction /= np.maximum(np.linalg.norm(direction, axis=1, keepdims=True), TINY)
+        idx_l, f_l = _normalised(np.arange(n) + 2 * n, direction, w, strength_of(name))
+        out[name + "_l"] = idx_l, f_l
+        out[name + "_r"] = _mirror_control(tpl, idx_l, f_l, n)
     return out
 
 

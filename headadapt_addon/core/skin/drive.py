@@ -55,7 +55,7 @@ _FAP_SKIN_LEFT = {
     "raise_l_o_eyebrow": {"frontalis_outer_l": 1.0},
     "squeeze_l_eyebrow": {"corrugator_l": 1.0},
     "puff_l_cheek": {"cheek_puff_l": 1.0},
-    "lift_l_cheek": {"orbicularis_oculi_l": 1.0},
+    "lift_l_cheek": {"cheek_raiser_l": 1.0},
     "stretch_l_nose": {"nasalis_l": 1.0},
     "raise_nose": {"levator_labii_superioris_l": 0.5, "levator_labii_superioris_r": 0.5},
     "bend_nose": {"nasalis_r": 1.0},
@@ -96,15 +96,17 @@ NOT_EXPRESSED = ("dilate_l_pupil", "dilate_r_pupil", "tongue_roll", "raise_l_ear
 # The six expressions (FAP 2) at full intensity: fitted once on the template to their artist
 # references (ARTIST_REFERENCE, below) by bounded least squares over FACS-plausible controls (joy,
 # fear, disgust, surprise) or all of them (sadness, anger: their references need the chin and lip
-# pushes), then scaled so the baked key has the reference's magnitude; lids within +-1. Joy is
-# hand-held below its fit (zygomaticus major 2.9): a strong zygomaticus pull folds a lip-corner
-# triangle of adapted seed 3 and breaks the mirror symmetry by 0.8 mm (the lip corners' contact).
+# pushes), then scaled so the baked key has the reference's magnitude; lids within +-1. Joy (AU6 +
+# AU12: cheek raiser and zygomaticus major) was picked from a grid over the zygomaticus major, the
+# cheek raiser and the orbicularis oculi on the template and generated heads 5 and 9, for the least
+# cosine over the three (not the template's own optimum); disgust (AU9 + AU10) is the bounded
+# least-squares fit over its FACS muscles.
 EXPRESSION_RECIPES = {
-    "joy": _both({"zygomaticus_major_l": 1.2, "zygomaticus_minor_l": 0.8, "orbicularis_oculi_l": 1.83, "lower_lid_l": 1.0}),
+    "joy": _both({"zygomaticus_major_l": 1.7, "orbicularis_oculi_l": 0.9, "lower_lid_l": 1.0, "cheek_raiser_l": 1.2}),
     "sadness": _both({"frontalis_inner_l": 0.86, "corrugator_l": 0.33, "levator_labii_superioris_l": 0.04, "zygomaticus_minor_l": 0.09, "risorius_l": 0.35, "depressor_anguli_oris_l": 0.61, "mentalis_l": 0.83, "nasalis_l": 0.32, "cheek_puff_l": 0.27}) | {"lip_push_upper": 0.1, "lip_push_lower": 0.71, "jaw_open": 0.08, "jaw_thrust": 0.22},
     "anger": _both({"corrugator_l": 2.54, "zygomaticus_major_l": 0.39, "mentalis_l": 0.69, "buccinator_l": 0.06, "orbicularis_oculi_l": 0.39, "cheek_puff_l": 0.16, "lower_lid_l": 0.89, "upper_lid_l": 0.24}) | {"lip_push_upper": 0.08, "lip_push_lower": 0.47},
     "fear": _both({"frontalis_inner_l": 0.85, "frontalis_outer_l": 0.32, "corrugator_l": 0.05, "risorius_l": 0.52, "upper_lid_l": -0.4, "depressor_labii_inferioris_l": 0.24, "mentalis_l": 0.97}) | {"jaw_open": 0.3},
-    "disgust": _both({"levator_labii_superioris_l": 0.6, "nasalis_l": 0.04, "corrugator_l": 2.52, "depressor_anguli_oris_l": 0.19, "orbicularis_oculi_l": 0.5, "lower_lid_l": 0.43}) | {"lip_push_upper": 0.45},
+    "disgust": _both({"levator_alaeque_nasi_l": 0.92, "levator_labii_superioris_l": 0.34, "corrugator_l": 1.49, "depressor_anguli_oris_l": 0.21, "orbicularis_oculi_l": 0.64, "lower_lid_l": 0.28, "cheek_raiser_l": 0.11, "depressor_supercilii_l": 1.46}) | {"lip_push_upper": 0.34},
     "surprise": _both({"frontalis_inner_l": 0.88, "frontalis_outer_l": 0.9, "upper_lid_l": -0.45, "mentalis_l": 0.88}) | {"jaw_open": 0.52},
 }
 
