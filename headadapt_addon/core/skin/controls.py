@@ -1,5 +1,6 @@
 """The skin model's controls at activation 1: muscle forces (Waters-style linear muscles and
-sphincters), the cheeks' air pressure and the lips' push, and the lids turning about the eyeball."""
+sphincters, and sheet muscles spread over a patch of skin), the cheeks' air pressure and the lips'
+push, and the lids turning about the eyeball."""
 
 from __future__ import annotations
 

@@ -144,6 +144,10 @@ ARKIT_CONTROLS = {
     "mouthFunnel": ("orbicularis_oris", "lip_funnel", "lip_push_upper", "lip_push_lower", "jaw_open",
                     "depressor_septi"),
     "cheekPuff": ("cheek_puff_l", "cheek_puff_r"),
+    "cheekSquintLeft": ("cheek_raiser_l",),
+    "cheekSquintRight": ("cheek_raiser_r",),
+    "noseSneerLeft": ("levator_alaeque_nasi_l", "depressor_supercilii_l", "corrugator_l"),
+    "noseSneerRight": ("levator_alaeque_nasi_r", "depressor_supercilii_r", "corrugator_r"),
 }
 
 

@@ -24,6 +24,8 @@ Controls, each with an activation (0 = rest, 1 = full):
   upper then stops on it). The plate is held to its turned place by springs, and its skin is then
   put there (the solve alone shears the lid's thin rim), the correction eased into the skin around;
 - `cheek_puff_l/r` push the cheeks out (air pressure in the mouth);
+- sheet muscles (controls.SHEET_MUSCLES: cheek raiser, levator alaeque nasi, depressor
+  supercilii, each _l/_r) pull a patch of the hypodermis along the skin, placed from the FDPs;
 - `lip_push_upper/lower` push the lips forward (the lip's own protrusion).
 Template frame (or the adapted head's, same axes), metres.
 """
