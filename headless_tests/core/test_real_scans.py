@@ -70,30 +70,34 @@ def test_tissue_depths_on_the_ct_are_those_of_the_transferred_skull(ct):
     assert np.median(err) < 3.6, [(n, round(real, 1), round(ours, 1)) for n, _, real, ours in rows]
 
 
-@pytest.mark.slow
-def test_expressions_bake_cleanly_on_the_real_ct(ct):
-    # every key on the CT's head: no key puts visible skin inside the (moved) skull, no folded
-    # triangle, neutral reproduced (3 keys put a lid vertex in the bone before the skull's folds were
-    # relaxed; a vertex already inside at rest is test_no_visible_skin_inside_the_transferred_skull's)
+def _assert_keys_bake_cleanly(tpl, ana):
+    """Every key baked on an adapted head: neutral reproduced, no folded triangle, no visible skin
+    vertex that the key moved inside the (moved) skull (one already inside at rest is the transfer's
+    test's: test_no_visible_skin_inside_the_transferred_skull)."""
     from headadapt_addon.core.skin import bake
 
-    tpl, ana = ct.tpl, ct.anatomy
     keys, timing = bake.bake(tpl, ana)
     model = timing["model"]
-    assert np.abs(model.equilibrium({}) - ana.parts["skin"]).max() < 1e-4
-    visible = ~tpl.hidden
+    rest = ana.parts["skin"]
+    assert np.abs(model.equilibrium({}) - rest).max() < 1e-4
     tris = tpl.skull_tris
-    rest_bone = np.vstack([ana.parts["cranium"], ana.parts["mandible"]])
-    visible &= winding_numbers(ana.parts["skin"], rest_bone, tris) < 0.5
+    visible = ~tpl.hidden
+    visible &= winding_numbers(rest, np.vstack([ana.parts["cranium"], ana.parts["mandible"]]), tris) < 0.5
     for key in keys:
         skin = key.moved.get("skin")
         if skin is None:
             continue
-        assert len(model.flipped(skin)) == 0, key.name     # joy folded 3 lip-corner triangles before
-                                                            # the unfold relaxed only around the folds
+        assert len(model.flipped(skin)) == 0, key.name
         bone = np.vstack([ana.parts["cranium"], key.moved.get("mandible", ana.parts["mandible"])])
-        moved = visible & (np.linalg.norm(skin - ana.parts["skin"], axis=1) > 1e-5)
+        moved = visible & (np.linalg.norm(skin - rest, axis=1) > 1e-5)
         assert (winding_numbers(skin[moved], bone, tris) > 0.5).sum() == 0, key.name
+
+
+@pytest.mark.slow
+def test_expressions_bake_cleanly_on_the_real_ct(ct):
+    # every key on the CT's head (3 keys put a lid vertex in the bone before the skull's folds were
+    # relaxed; joy folded 3 lip-corner triangles before the unfold relaxed only around the folds)
+    _assert_keys_bake_cleanly(ct.tpl, ct.anatomy)
 
 
 def test_eyes_sit_behind_the_closed_lids(ct):
@@ -157,28 +161,11 @@ def test_adapts_onto_a_real_range_scan_wound_inward(fran):
 
 
 def test_expressions_bake_cleanly_on_a_real_range_scan(fran):
-    # every key on Fran's adapted head: no folded triangle, no visible skin pushed into the bone
-    # (before this round 8 keys kept a fold here: joy 5, the smile's lip corner keys 1-2; and
-    # giving the lip corner's pull back toward rest put 2 vertices lying 0.1 mm above the cranium
-    # 1 mm into it)
-    from headadapt_addon.core.skin import bake
-
+    # every key on Fran's adapted head (before this round 8 keys kept a fold here: joy 5, the smile's
+    # lip corner keys 1-2; and giving the lip corner's pull back toward rest put 2 vertices lying
+    # 0.1 mm above the cranium 1 mm into it)
     tpl, res = fran
-    ana = anatomy.transfer(tpl, res)
-    keys, timing = bake.bake(tpl, ana)
-    model = timing["model"]
-    rest = ana.parts["skin"]
-    tris = tpl.skull_tris
-    visible = ~tpl.hidden
-    visible &= winding_numbers(rest, np.vstack([ana.parts["cranium"], ana.parts["mandible"]]), tris) < 0.5
-    for key in keys:
-        skin = key.moved.get("skin")
-        if skin is None:
-            continue
-        assert len(model.flipped(skin)) == 0, key.name
-        bone = np.vstack([ana.parts["cranium"], key.moved.get("mandible", ana.parts["mandible"])])
-        moved = visible & (np.linalg.norm(skin - rest, axis=1) > 1e-5)
-        assert (winding_numbers(skin[moved], bone, tris) > 0.5).sum() == 0, key.name
+    _assert_keys_bake_cleanly(tpl, anatomy.transfer(tpl, res))
 
 
 @pytest.fixture(scope="module")

@@ -152,8 +152,9 @@ class ContactMixin:
         y = x + frac[:, None] * (home - x)
         # ... unless their way home crosses the bone (skin lying on a curved bone; Fran's lip corner
         # put 2 vertices 0.1 mm from the cranium 1 mm into it): those stay where they were, outside
-        spread = np.flatnonzero(frac > 0)
-        spread = spread[~np.isin(spread, bad)]
+        given = frac > 0
+        given[bad] = False
+        spread = np.flatnonzero(given)
         if len(spread):
             crossed = spread[self._inside(y[spread], rot, t)]
             y[crossed] = x[crossed]

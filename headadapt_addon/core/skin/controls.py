@@ -73,6 +73,12 @@ def _mirror_control(tpl, idx_l, vec_l, n):
     return _mirror_dofs(tpl, idx_l, n), vec_l * [-1.0, 1.0, 1.0]
 
 
+def _along_skin(direction, normals):
+    """Unit vectors (n,3): each direction with its part along the vertex normal taken out."""
+    direction = direction - np.einsum("ij,ij->i", direction, normals)[:, None] * normals
+    return direction / np.maximum(np.linalg.norm(direction, axis=1, keepdims=True), TINY)
+
+
 def _normalised(idx, direction, weight, strength):
     keep = weight > 0
     return idx[keep], direction[keep] * (strength * weight[keep] / max(weight.sum(), TINY))[:, None]
@@ -96,9 +102,7 @@ def muscle_forces(tpl, rest, normals, n, muscles, sphincters):
         angular = np.clip((cosang - cone) / (1 - cone), 0, 1)
         radial = np.clip(1 - np.abs(dist - length) / max(MUSCLE_BAND * length, MUSCLE_MIN_REACH), 0, 1)
         w = angular * radial * inside
-        direction = -rel                                             # toward the attachment, along the skin
-        direction -= np.einsum("ij,ij->i", direction, normals)[:, None] * normals
-        direction /= np.maximum(np.linalg.norm(direction, axis=1, keepdims=True), TINY)
+        direction = _along_skin(-rel, normals)                       # toward the attachment, along the skin
         out[mm["name"]] = _normalised(np.arange(n) + 2 * n, direction, w, strength_of(mm["name"]))
     for sph in sphincters:
         inside = tpl.region_mask(*sph["regions"])
@@ -170,12 +174,8 @@ def sheet_muscles(tpl, skin, normals, fdps, n):
     for name, (centre, reach, power, pull, regions) in SHEET_MUSCLES.items():
         d = np.linalg.norm(skin - _point(fdps, centre), axis=1)
         w = np.clip(1 - d / (reach * mw), 0, 1) ** power * tpl.region_mask(*regions) * side_l
-        if isinstance(pull, tuple) and len(pull) == 3 and not isinstance(pull[0], str):
-            direction = np.tile(np.asarray(pull, dtype=float), (n, 1))
-        else:
-            direction = _point(fdps, pull) - skin
-        direction -= np.einsum("ij,ij->i", direction, normals)[:, None] * normals
-        direction /= np.maximum(np.linalg.norm(direction, axis=1, keepdims=True), TINY)
+        fixed = not isinstance(pull, str) and not isinstance(pull[0], str)
+        direction = _along_skin(np.tile(pull, (n, 1)) if fixed else _point(fdps, pull) - skin, normals)
         idx_l, f_l = _normalised(np.arange(n) + 2 * n, direction, w, strength_of(name))
         out[name + "_l"] = idx_l, f_l
         out[name + "_r"] = _mirror_control(tpl, idx_l, f_l, n)
