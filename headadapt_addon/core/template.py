@@ -102,6 +102,12 @@ class Template:
         return np.isin(self.region, [self.region_names.index(r) for r in names])
 
     @functools.cached_property
+    def derived(self):
+        """Scratch space for data made from the template alone (the fit's level bases: see
+        adapt.fit.template_side), kept for the life of this template object."""
+        return {}
+
+    @functools.cached_property
     def hidden(self):
         """Boolean mask (n_skin,) of the skin no scanner sees (HIDDEN_REGIONS)."""
         return self.region_mask(*HIDDEN_REGIONS)
