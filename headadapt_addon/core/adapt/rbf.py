@@ -99,15 +99,18 @@ class CSRBF:
         self.g_const, self.g_lin, self.coef = g_const, g_lin, coef
         self.matrix = matrix
         self.tree = cKDTree(centres)
+        # the levels' offsets have no local fits (zeros): their evaluation skips that term
+        self.has_local = bool(np.any(g_const) or np.any(g_lin))
 
     def __call__(self, x):
         """Offsets (n,k) at points x (n,3)."""
         x = np.atleast_2d(np.asarray(x, dtype=np.float64))
         i, j, r = _pairs(cKDTree(x), self.tree, self.sigma)
         phi = wendland(r, self.sigma)
-        local = self.g_const[j] + np.einsum("pk,pkd->pd", x[i] - self.centres[j], self.g_lin[j])
-        contrib = (local + self.coef[j]) * phi[:, None]
-        return _sum_rows(i, contrib, len(x))
+        value = self.coef[j]
+        if self.has_local:
+            value = value + self.g_const[j] + np.einsum("pk,pkd->pd", x[i] - self.centres[j], self.g_lin[j])
+        return _sum_rows(i, value * phi[:, None], len(x))
 
 
 def fit_csrbf(centres, values, sigma):
