@@ -91,10 +91,10 @@ class TriangleBVH:
         self.det_min = TINY * np.maximum(np.sqrt(self.e11 * self.e22), 1e-300)
         n2 = self.n[0] * self.n[0] + self.n[1] * self.n[1] + self.n[2] * self.n[2]
         self.flat = n2 <= TINY * TINY * self.e11 * self.e22           # as flat_triangles: taken as 3 segments
-        self._near = None                                               # closest-point data, made on first use
+        self._near = self._vtree = None                                 # closest-point data, made on first use
 
     def _closest_data(self):
-        """e1.e2, bounding spheres and a kd-tree of the centres (only closest points need them)."""
+        """e1.e2 and bounding spheres (only closest points need them)."""
         if self._near is None:
             a, e1, e2 = self.a, self.e1, self.e2
             e12 = e1[0] * e2[0] + e1[1] * e2[1] + e1[2] * e2[2]
@@ -103,9 +103,17 @@ class TriangleBVH:
             r2 = [sum(((b + c) / 3.0) ** 2 for b, c in zip(e1, e2))]
             r2 += [sum((x - (b + c) / 3.0) ** 2 for x, b, c in zip(e, e1, e2)) for e in (e1, e2)]
             radius = np.sqrt(np.maximum(np.maximum(r2[0], r2[1]), r2[2])) + self.pad
-            tree = cKDTree(np.stack(centre, axis=1), balanced_tree=False, compact_nodes=False) if self.m else None
-            self._near = (e12, centre, radius, tree)       # (unbalanced, loose: half the time to build and query)
+            self._near = (e12, centre, radius)
         return self._near
+
+    def vertex_tree(self):
+        """A kd-tree of the vertices in use (the nearest one's distance bounds a point's), of all `verts` if
+        all are (ScanSide shares it). Unbalanced, loose: 2x faster to build, 10x to query far inside."""
+        if self._vtree is None:
+            used = np.bincount(self.tris.ravel(), minlength=len(self.verts)) > 0
+            self._vtree = cKDTree(self.verts[used] if not used.all() else self.verts, balanced_tree=False,
+                                  compact_nodes=False)
+        return self._vtree
 
     # --- walking the tree -------------------------------------------------------------------------
     def _walk(self, count, keep_fn):
@@ -223,7 +231,7 @@ class TriangleBVH:
 
     def sphere_gap(self, p, owner, slot):
         """A lower bound of the distance from points p[owner] to slots: to their bounding spheres."""
-        _, centre, radius, _ = self._closest_data()
+        _, centre, radius = self._closest_data()
         cx, cy, cz = (x[slot] for x in centre)
         return np.sqrt((p[0][owner] - cx) ** 2 + (p[1][owner] - cy) ** 2 + (p[2][owner] - cz) ** 2) - radius[slot]
 
@@ -261,29 +269,23 @@ class TriangleBVH:
     def closest(self, points):
         """(closest point, face, distance) on the mesh of each point, as triangles.closest_choice picks it.
 
-        The triangle whose centre is nearest (a kd-tree of the centres, made on first use) bounds each
-        point's distance; the walk finds every leaf box within that bound, and of their triangles those
-        whose bounding sphere is within it are measured; the ones within `pad` of the least go to
-        closest_choice."""
+        The nearest vertex in use (vertex_tree) bounds each point's distance; the walk finds every leaf
+        box within that bound, and of their triangles those whose bounding sphere is within it are
+        measured; the ones within `pad` of the least go to closest_choice. (Any sound bound gives these
+        candidates: this tree has half the points of the triangle centres', and ScanSide needs it.)"""
         n = len(points)
         out_q, out_f, out_d = np.full((n, 3), np.nan), np.zeros(n, np.int64), np.full(n, np.inf)
         if not self.m or not n:
             return out_q, out_f, out_d
         p = tuple(np.ascontiguousarray(points[:, k]) for k in range(3))
-        q1 = np.arange(n)
-        s1 = self._closest_data()[3].query(points)[1]
-        d1 = self.point_test(p, q1, s1)
-        bound = d1 + self.pad
+        bound = self.vertex_tree().query(points)[0] + self.pad
         b2 = bound * bound
         owner, leaf = self._walk(n, lambda q, level, nd: self._box_gap2(p, q, level, nd) <= b2[q])
         q2, s2 = self._slots(owner, leaf)
-        near = (self.sphere_gap(p, q2, s2) <= bound[q2]) & (s2 != s1[q2])
-        q2, s2 = q2[near], s2[near]
-        d2 = self.point_test(p, q2, s2)
+        near = self.sphere_gap(p, q2, s2) <= bound[q2]
+        allq, slots = q2[near], s2[near]                                # owners in order
+        dist = self.point_test(p, allq, slots)
         # every candidate within pad of its point's least distance, by point
-        allq, slots, dist = np.r_[q1, q2], np.r_[s1, s2], np.r_[d1, d2]
-        order = np.argsort(allq, kind="stable")
-        allq, slots, dist = allq[order], slots[order], dist[order]
         starts = np.flatnonzero(np.r_[True, allq[1:] != allq[:-1]])
         least = np.repeat(np.minimum.reduceat(dist, starts), np.diff(np.r_[starts, len(allq)]))
         keep = dist <= least + self.pad
