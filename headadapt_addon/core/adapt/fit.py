@@ -24,15 +24,16 @@ def face_weights(tpl):
 class ScanSide:
     """The calibrated scan with its queries, normals, boundary and curvature (computed once)."""
 
-    def __init__(self, verts, tris, options, fc=None):
-        """fc: the triangles' geometry.face_cross if the caller has it (calibrate does: the winding
-        check needs it too); both normals come from it, computed once."""
+    def __init__(self, verts, tris, options, fc=None, sums=None):
+        """fc, sums: the triangles' geometry.face_cross and vertex_sums if the caller has them (calibrate
+        does: the winding check needs them too); the normals come from them, computed once."""
         t0 = time.perf_counter()
         self.verts, self.tris = verts, tris
         self.query = spatial.MeshQuery(verts, tris, backend=options.backend)
         fc = geometry.face_cross(verts, tris) if fc is None else fc
         self.face_normals = geometry.face_normals(verts, tris, fc)
-        self.vertex_normals = geometry.vertex_normals(verts, tris, fc)
+        self.vertex_normals = geometry.vertex_normals(verts, tris, geometry.vertex_sums(tris, fc, len(verts))
+                                                      if sums is None else sums)
         self.border_edges = geometry.boundary_edges(tris)          # found once: faces, vertices, on_border
         on = np.zeros(len(verts), bool)
         on[self.border_edges.ravel()] = True

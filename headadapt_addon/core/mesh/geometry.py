@@ -37,13 +37,17 @@ def face_normals(v, t, fc=None):
     return np.divide(n, length, out=np.zeros_like(n), where=length > 0)
 
 
-def vertex_normals(v, t, fc=None):
-    """Area-weighted unit vertex normals (n,3); zero for vertices in no triangle. fc: the triangles'
-    face_cross if the caller has it (the weights: each triangle's cross product, added to its three
-    corners in triangle order)."""
-    fn = face_cross(v, t) if fc is None else fc
+def vertex_sums(t, fc, n):
+    """Each vertex's sum (n,3) of its triangles' face_cross, added in triangle order: the area-weighted
+    normal before its length is taken."""
     idx = t.ravel()
-    vn = np.stack([np.bincount(idx, weights=np.repeat(fn[:, c], 3), minlength=len(v)) for c in range(3)], axis=1)
+    return np.stack([np.bincount(idx, weights=np.repeat(fc[:, c], 3), minlength=n) for c in range(3)], axis=1)
+
+
+def vertex_normals(v, t, sums=None):
+    """Area-weighted unit vertex normals (n,3); zero for vertices in no triangle. sums: the vertex_sums
+    if the caller has them."""
+    vn = vertex_sums(t, face_cross(v, t), len(v)) if sums is None else sums
     length = np.linalg.norm(vn, axis=1, keepdims=True)
     return np.divide(vn, length, out=np.zeros_like(vn), where=length > 0)
 
@@ -139,11 +143,11 @@ def mean_curvature(v, t):
     return H, valid
 
 
-def orient_outward(v, t, centre, fc=None):
+def orient_outward(v, t, centre, sums=None):
     """(tris, flipped): the triangles (k,3) with each connected piece wound so that its normals
     face away from `centre` (a point inside the head, same frame) on area-weighted balance, and
     how many pieces were turned. Scanners and converters often write inward-facing windings.
-    fc: the triangles' face_cross if the caller has it."""
+    sums: the triangles' vertex_sums if the caller has them."""
     from scipy.sparse import csgraph
 
     t = np.asarray(t)
@@ -154,12 +158,11 @@ def orient_outward(v, t, centre, fc=None):
     graph = sparse.csr_matrix((np.ones(3 * k), t.ravel(), np.r_[np.zeros(n, np.int64), 3 * np.arange(k + 1)]),
                               shape=(n + k, n + k))
     n_comp, label = csgraph.connected_components(graph, directed=False)
-    piece = label[n:]
-    a, b, c = v[t[:, 0]], v[t[:, 1]], v[t[:, 2]]
-    fc = cross(b - a, c - a) if fc is None else fc
-    outward = np.einsum("ij,ij->i", fc, (a + b + c) / 3.0 - centre)   # area-weighted
-    vote = np.bincount(piece, weights=outward, minlength=n_comp)
-    flip = vote[piece] < 0
+    sums = vertex_sums(t, face_cross(v, t), n) if sums is None else sums
+    # a piece's balance, sum over its triangles of cross . (centroid - centre), is corner by corner
+    # a third of sum over its vertices of (vertex - centre) . sums: no triangle corners to gather
+    vote = np.bincount(label[:n], weights=np.einsum("ij,ij->i", v - centre, sums), minlength=n_comp)
+    flip = vote[label[n:]] < 0
     out = t.copy()
     out[flip] = out[flip][:, ::-1]
     return out, int((vote < 0).sum())
