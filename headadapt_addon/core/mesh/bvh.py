@@ -54,10 +54,8 @@ class TriangleBVH:
         self.m = m = len(tris)
         # corners as coordinate arrays: xyz[k][j] is coordinate k of corner j of every triangle
         xyz = [[np.ascontiguousarray(verts[tris[:, j], k]) for j in range(3)] for k in range(3)]
-        tlo = [np.minimum(np.minimum(c[0], c[1]), c[2]) for c in xyz]
-        thi = [np.maximum(np.maximum(c[0], c[1]), c[2]) for c in xyz]
-        lo = np.array([x.min() if m else 0.0 for x in tlo])
-        hi = np.array([x.max() if m else 0.0 for x in thi])
+        lo = np.array([min(c[0].min(), c[1].min(), c[2].min()) if m else 0.0 for c in xyz])
+        hi = np.array([max(c[0].max(), c[1].max(), c[2].max()) if m else 0.0 for c in xyz])
         self.scale = float(np.linalg.norm(hi - lo)) or 1.0
         self.pad = EXACT * self.scale
         self.depth = int(np.ceil(np.log2(max(m / leaf_size, 1.0))))
@@ -65,6 +63,7 @@ class TriangleBVH:
         self.leaf_start = (np.arange(leaves + 1) * m) // leaves         # leaf k: slots leaf_start[k]..[k+1]-1
         order = _morton_order([(c[0] + c[1] + c[2]) / 3.0 for c in xyz])
         self.face = order                                               # tree slot -> face of the mesh
+        xyz = [[x[order] for x in c] for c in xyz]                      # in slot order from here on
         boxes = [None] * (self.depth + 1)                               # per level (root first): (lo (3,k), hi (3,k))
         if m:
             # a triangle's box, widened by pad and by the most a ray hit may lie off it (RAY_TOL of its
@@ -73,8 +72,8 @@ class TriangleBVH:
                 sum((c[1] - c[0]) ** 2 for c in xyz), sum((c[2] - c[1]) ** 2 for c in xyz)),
                 sum((c[0] - c[2]) ** 2 for c in xyz)))
             starts = self.leaf_start[:-1]
-            boxes[-1] = (np.minimum.reduceat((np.stack(tlo) - slack)[:, order], starts, axis=1),
-                         np.maximum.reduceat((np.stack(thi) + slack)[:, order], starts, axis=1))
+            boxes[-1] = tuple(np.stack([f.reduceat(f(f(c[0], c[1]), c[2]) + sign * slack, starts) for c in xyz])
+                              for f, sign in ((np.minimum, -1.0), (np.maximum, 1.0)))
         else:
             boxes[-1] = (np.full((3, 1), np.inf), np.full((3, 1), -np.inf))
         for level in range(self.depth - 1, -1, -1):
@@ -82,9 +81,9 @@ class TriangleBVH:
             boxes[level] = (np.minimum(blo[:, 0::2], blo[:, 1::2]), np.maximum(bhi[:, 0::2], bhi[:, 1::2]))
         self.boxes = [tuple(np.ascontiguousarray(x[k]) for x in b for k in range(3)) for b in boxes]
         # per slot: a corner, the two edges from it, their cross product, the Moller-Trumbore threshold
-        self.a = a = tuple(c[0][order] for c in xyz)
-        self.e1 = e1 = tuple(c[1][order] - ak for c, ak in zip(xyz, a))
-        self.e2 = e2 = tuple(c[2][order] - ak for c, ak in zip(xyz, a))
+        self.a = a = tuple(c[0] for c in xyz)
+        self.e1 = e1 = tuple(c[1] - ak for c, ak in zip(xyz, a))
+        self.e2 = e2 = tuple(c[2] - ak for c, ak in zip(xyz, a))
         self.n = (e1[1] * e2[2] - e1[2] * e2[1], e1[2] * e2[0] - e1[0] * e2[2], e1[0] * e2[1] - e1[1] * e2[0])
         self.e11 = e1[0] * e1[0] + e1[1] * e1[1] + e1[2] * e1[2]
         self.e22 = e2[0] * e2[0] + e2[1] * e2[1] + e2[2] * e2[2]
