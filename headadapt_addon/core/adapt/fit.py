@@ -24,24 +24,40 @@ def face_weights(tpl):
 class ScanSide:
     """The calibrated scan with its queries, normals, boundary and curvature (computed once)."""
 
-    def __init__(self, verts, tris, options):
+    def __init__(self, verts, tris, options, fc=None, sums=None):
+        """fc, sums: the triangles' geometry.face_cross and vertex_sums if the caller has them (calibrate
+        does: the winding check needs them too); the normals come from them, computed once."""
         t0 = time.perf_counter()
         self.verts, self.tris = verts, tris
         self.query = spatial.MeshQuery(verts, tris, backend=options.backend)
-        self.face_normals = geometry.face_normals(verts, tris)
-        self.vertex_normals = geometry.vertex_normals(verts, tris)
+        fc = geometry.face_cross(verts, tris) if fc is None else fc
+        self.face_normals = geometry.face_normals(verts, tris, fc)
+        self.vertex_normals = geometry.vertex_normals(verts, tris, geometry.vertex_sums(tris, fc, len(verts))
+                                                      if sums is None else sums)
         self.border_edges = geometry.boundary_edges(tris)          # found once: faces, vertices, on_border
         on = np.zeros(len(verts), bool)
         on[self.border_edges.ravel()] = True
         self.boundary_faces = on[tris].any(axis=1)                  # as geometry.boundary_faces
         self.boundary_verts = np.zeros(len(verts), bool)
         self.boundary_verts[tris[self.boundary_faces].ravel()] = True
-        self.median_edge = float(np.median(np.linalg.norm(verts[tris[:, 0]] - verts[tris[:, 1]], axis=1)))
+        # the median of the triangles' first edges; the numpy tree has their lengths (the same numbers)
+        tree = getattr(self.query, "tree", None)
+        self.median_edge = tree.median_edge() if tree is not None else \
+            float(np.median(np.linalg.norm(verts[tris[:, 0]] - verts[tris[:, 1]], axis=1)))
         self.coarse = self.median_edge > options.dense_spacing
-        self.vertex_tree = None if self.coarse else cKDTree(verts)  # the dense scans' tangent planes only
+        self.vertex_tree = None if self.coarse else self._vertex_tree()  # the dense scans' tangent planes only
         self._curv = None
         self._border = None
         self.seconds = {"build": time.perf_counter() - t0, "curvature": 0.0}     # the stages' report
+
+    def _vertex_tree(self):
+        """A kd-tree of the vertices: the numpy tree's own (its closest points' bound) when it holds them
+        all, built once for both; else one built alike (unbalanced, loose: see bvh.vertex_tree)."""
+        tree = getattr(self.query, "tree", None)
+        tree = tree.vertex_tree() if tree is not None else None
+        if tree is None or tree.n != len(self.verts):
+            tree = cKDTree(self.verts, balanced_tree=False, compact_nodes=False)
+        return tree
 
     def nearest_on_plane(self, points):
         """(point, normal, distance, on a hole's border) per query point for ICP pairs: on a dense scan

@@ -134,10 +134,18 @@ def calibrate(tpl: Template, scan_verts: np.ndarray, scan_tris: np.ndarray, scan
     sv = sim.apply(scan_verts)
     q_fdp = {k: sim.apply(v) for k, v in given.items()}
     # normals out of the head, whatever winding the file has (pairs are matched by normals)
-    scan_tris, flipped = geometry.orient_outward(sv, scan_tris, tpl.parts["cranium"].verts.mean(axis=0))
+    # (the triangles' cross products and their sums per vertex serve the check and the scan's normals:
+    # computed once, the products again only for the triangles turned, the sums then anew)
+    fc = geometry.face_cross(sv, scan_tris)
+    sums = geometry.vertex_sums(scan_tris, fc, len(sv))
+    turned, flipped = geometry.orient_outward(sv, scan_tris, tpl.parts["cranium"].verts.mean(axis=0), sums)
+    if flipped:
+        redo = np.flatnonzero((turned != scan_tris).any(axis=1))
+        fc[redo], sums = geometry.face_cross(sv, turned[redo]), None
+    scan_tris = turned
     notes = handedness_notes(handed, flipped)
     info = {**info, "scan_pieces_turned": flipped, "handedness": {**handed, "notes": notes}, "unused_fdps": unused}
-    scan = ScanSide(sv, scan_tris, options)
+    scan = ScanSide(sv, scan_tris, options, fc, sums)
     threshold = float(np.ptp(tpl.skin.verts[:, 0])) / 10.0     # the paper's width / 10
     return Fit(tpl, scan, options, threshold), tpl_fdps, q_fdp, sim, info
 

@@ -54,10 +54,8 @@ class TriangleBVH:
         self.m = m = len(tris)
         # corners as coordinate arrays: xyz[k][j] is coordinate k of corner j of every triangle
         xyz = [[np.ascontiguousarray(verts[tris[:, j], k]) for j in range(3)] for k in range(3)]
-        tlo = [np.minimum(np.minimum(c[0], c[1]), c[2]) for c in xyz]
-        thi = [np.maximum(np.maximum(c[0], c[1]), c[2]) for c in xyz]
-        lo = np.array([x.min() if m else 0.0 for x in tlo])
-        hi = np.array([x.max() if m else 0.0 for x in thi])
+        lo = np.array([min(c[0].min(), c[1].min(), c[2].min()) if m else 0.0 for c in xyz])
+        hi = np.array([max(c[0].max(), c[1].max(), c[2].max()) if m else 0.0 for c in xyz])
         self.scale = float(np.linalg.norm(hi - lo)) or 1.0
         self.pad = EXACT * self.scale
         self.depth = int(np.ceil(np.log2(max(m / leaf_size, 1.0))))
@@ -65,6 +63,7 @@ class TriangleBVH:
         self.leaf_start = (np.arange(leaves + 1) * m) // leaves         # leaf k: slots leaf_start[k]..[k+1]-1
         order = _morton_order([(c[0] + c[1] + c[2]) / 3.0 for c in xyz])
         self.face = order                                               # tree slot -> face of the mesh
+        xyz = [[x[order] for x in c] for c in xyz]                      # in slot order from here on
         boxes = [None] * (self.depth + 1)                               # per level (root first): (lo (3,k), hi (3,k))
         if m:
             # a triangle's box, widened by pad and by the most a ray hit may lie off it (RAY_TOL of its
@@ -73,8 +72,8 @@ class TriangleBVH:
                 sum((c[1] - c[0]) ** 2 for c in xyz), sum((c[2] - c[1]) ** 2 for c in xyz)),
                 sum((c[0] - c[2]) ** 2 for c in xyz)))
             starts = self.leaf_start[:-1]
-            boxes[-1] = (np.minimum.reduceat((np.stack(tlo) - slack)[:, order], starts, axis=1),
-                         np.maximum.reduceat((np.stack(thi) + slack)[:, order], starts, axis=1))
+            boxes[-1] = tuple(np.stack([f.reduceat(f(f(c[0], c[1]), c[2]) + sign * slack, starts) for c in xyz])
+                              for f, sign in ((np.minimum, -1.0), (np.maximum, 1.0)))
         else:
             boxes[-1] = (np.full((3, 1), np.inf), np.full((3, 1), -np.inf))
         for level in range(self.depth - 1, -1, -1):
@@ -82,19 +81,19 @@ class TriangleBVH:
             boxes[level] = (np.minimum(blo[:, 0::2], blo[:, 1::2]), np.maximum(bhi[:, 0::2], bhi[:, 1::2]))
         self.boxes = [tuple(np.ascontiguousarray(x[k]) for x in b for k in range(3)) for b in boxes]
         # per slot: a corner, the two edges from it, their cross product, the Moller-Trumbore threshold
-        self.a = a = tuple(c[0][order] for c in xyz)
-        self.e1 = e1 = tuple(c[1][order] - ak for c, ak in zip(xyz, a))
-        self.e2 = e2 = tuple(c[2][order] - ak for c, ak in zip(xyz, a))
+        self.a = a = tuple(c[0] for c in xyz)
+        self.e1 = e1 = tuple(c[1] - ak for c, ak in zip(xyz, a))
+        self.e2 = e2 = tuple(c[2] - ak for c, ak in zip(xyz, a))
         self.n = (e1[1] * e2[2] - e1[2] * e2[1], e1[2] * e2[0] - e1[0] * e2[2], e1[0] * e2[1] - e1[1] * e2[0])
         self.e11 = e1[0] * e1[0] + e1[1] * e1[1] + e1[2] * e1[2]
         self.e22 = e2[0] * e2[0] + e2[1] * e2[1] + e2[2] * e2[2]
         self.det_min = TINY * np.maximum(np.sqrt(self.e11 * self.e22), 1e-300)
         n2 = self.n[0] * self.n[0] + self.n[1] * self.n[1] + self.n[2] * self.n[2]
         self.flat = n2 <= TINY * TINY * self.e11 * self.e22           # as flat_triangles: taken as 3 segments
-        self._near = None                                               # closest-point data, made on first use
+        self._near = self._vtree = None                                 # closest-point data, made on first use
 
     def _closest_data(self):
-        """e1.e2, bounding spheres and a kd-tree of the centres (only closest points need them)."""
+        """e1.e2 and bounding spheres (only closest points need them)."""
         if self._near is None:
             a, e1, e2 = self.a, self.e1, self.e2
             e12 = e1[0] * e2[0] + e1[1] * e2[1] + e1[2] * e2[2]
@@ -103,9 +102,17 @@ class TriangleBVH:
             r2 = [sum(((b + c) / 3.0) ** 2 for b, c in zip(e1, e2))]
             r2 += [sum((x - (b + c) / 3.0) ** 2 for x, b, c in zip(e, e1, e2)) for e in (e1, e2)]
             radius = np.sqrt(np.maximum(np.maximum(r2[0], r2[1]), r2[2])) + self.pad
-            tree = cKDTree(np.stack(centre, axis=1), balanced_tree=False, compact_nodes=False) if self.m else None
-            self._near = (e12, centre, radius, tree)       # (unbalanced, loose: half the time to build and query)
+            self._near = (e12, centre, radius)
         return self._near
+
+    def vertex_tree(self):
+        """A kd-tree of the vertices in use (the nearest one's distance bounds a point's), of all `verts` if
+        all are (ScanSide shares it). Unbalanced, loose: 2x faster to build, 10x to query far inside."""
+        if self._vtree is None:
+            used = np.bincount(self.tris.ravel(), minlength=len(self.verts)) > 0
+            self._vtree = cKDTree(self.verts[used] if not used.all() else self.verts, balanced_tree=False,
+                                  compact_nodes=False)
+        return self._vtree
 
     # --- walking the tree -------------------------------------------------------------------------
     def _walk(self, count, keep_fn):
@@ -223,7 +230,7 @@ class TriangleBVH:
 
     def sphere_gap(self, p, owner, slot):
         """A lower bound of the distance from points p[owner] to slots: to their bounding spheres."""
-        _, centre, radius, _ = self._closest_data()
+        _, centre, radius = self._closest_data()
         cx, cy, cz = (x[slot] for x in centre)
         return np.sqrt((p[0][owner] - cx) ** 2 + (p[1][owner] - cy) ** 2 + (p[2][owner] - cz) ** 2) - radius[slot]
 
@@ -261,29 +268,23 @@ class TriangleBVH:
     def closest(self, points):
         """(closest point, face, distance) on the mesh of each point, as triangles.closest_choice picks it.
 
-        The triangle whose centre is nearest (a kd-tree of the centres, made on first use) bounds each
-        point's distance; the walk finds every leaf box within that bound, and of their triangles those
-        whose bounding sphere is within it are measured; the ones within `pad` of the least go to
-        closest_choice."""
+        The nearest vertex in use (vertex_tree) bounds each point's distance; the walk finds every leaf
+        box within that bound, and of their triangles those whose bounding sphere is within it are
+        measured; the ones within `pad` of the least go to closest_choice. (Any sound bound gives these
+        candidates: this tree has half the points of the triangle centres', and ScanSide needs it.)"""
         n = len(points)
         out_q, out_f, out_d = np.full((n, 3), np.nan), np.zeros(n, np.int64), np.full(n, np.inf)
         if not self.m or not n:
             return out_q, out_f, out_d
         p = tuple(np.ascontiguousarray(points[:, k]) for k in range(3))
-        q1 = np.arange(n)
-        s1 = self._closest_data()[3].query(points)[1]
-        d1 = self.point_test(p, q1, s1)
-        bound = d1 + self.pad
+        bound = self.vertex_tree().query(points)[0] + self.pad
         b2 = bound * bound
         owner, leaf = self._walk(n, lambda q, level, nd: self._box_gap2(p, q, level, nd) <= b2[q])
         q2, s2 = self._slots(owner, leaf)
-        near = (self.sphere_gap(p, q2, s2) <= bound[q2]) & (s2 != s1[q2])
-        q2, s2 = q2[near], s2[near]
-        d2 = self.point_test(p, q2, s2)
+        near = self.sphere_gap(p, q2, s2) <= bound[q2]
+        allq, slots = q2[near], s2[near]                                # owners in order
+        dist = self.point_test(p, allq, slots)
         # every candidate within pad of its point's least distance, by point
-        allq, slots, dist = np.r_[q1, q2], np.r_[s1, s2], np.r_[d1, d2]
-        order = np.argsort(allq, kind="stable")
-        allq, slots, dist = allq[order], slots[order], dist[order]
         starts = np.flatnonzero(np.r_[True, allq[1:] != allq[:-1]])
         least = np.repeat(np.minimum.reduceat(dist, starts), np.diff(np.r_[starts, len(allq)]))
         keep = dist <= least + self.pad
