@@ -8,6 +8,7 @@ from scipy import sparse
 from scipy.sparse.linalg import splu
 from scipy.spatial import cKDTree
 
+from .. import threads
 from ..tol import TINY
 from . import rbf
 from .fit import Fit, Pairs
@@ -82,15 +83,6 @@ def _cg_rtol_keyword():
 
 
 _CG_RTOL = _cg_rtol_keyword()
-_POOL = []
-
-
-def _columns_pool():
-    """The threads that solve a level's three coordinate columns at once (made on first use)."""
-    if not _POOL:
-        from concurrent.futures import ThreadPoolExecutor
-        _POOL.append(ThreadPoolExecutor(max_workers=3, thread_name_prefix="headadapt-solve"))
-    return _POOL[0]
 
 
 def solve_spd(A, b, x0=None, factor=None, rtol=1e-5, jacobi_steps=250, lu_steps=30):
@@ -111,7 +103,7 @@ def solve_spd(A, b, x0=None, factor=None, rtol=1e-5, jacobi_steps=250, lu_steps=
 
         # the columns side by side: scipy's sparse products release the GIL, so on 2 cores the three
         # solves of a level take about 0.8 of their time one after another (the answers are the same)
-        solved = list(_columns_pool().map(column, range(b.shape[1])))
+        solved = list(threads.pool().map(column, range(b.shape[1])))
         if any(info > 0 for _, info in solved):
             return None
         return np.stack([x for x, _ in solved], axis=1)
