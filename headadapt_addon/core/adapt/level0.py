@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import Delaunay
 
+from ..mesh import geometry
 from . import rbf
 from .fit import Fit, Pairs
 from .pairs import surface_pairs
@@ -79,6 +80,6 @@ def feature_mesh(points: np.ndarray, centre: np.ndarray) -> np.ndarray:
     edges = np.linalg.norm(p[tris] - p[np.roll(tris, 1, axis=1)], axis=2)
     keep = edges.max(axis=1) < 0.45 * radius * 2
     # drop slivers along the convex hull of the parameter domain
-    area = 0.5 * np.linalg.norm(np.cross(p[tris[:, 1]] - p[tris[:, 0]], p[tris[:, 2]] - p[tris[:, 0]]), axis=1)
+    area = geometry.face_areas(p, tris)
     keep &= area > 1e-3 * edges.max(axis=1) ** 2
     return tris[keep]

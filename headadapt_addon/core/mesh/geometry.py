@@ -190,13 +190,13 @@ class FoldCheck:
 
     def __init__(self, rest, t, sliver=0.01):
         self.t = t
-        self.n0 = cross(rest[t[:, 1]] - rest[t[:, 0]], rest[t[:, 2]] - rest[t[:, 0]])
+        self.n0 = face_cross(rest, t)
         longest = np.linalg.norm(rest[t] - rest[np.roll(t, 1, axis=1)], axis=2).max(axis=1)
         self.ok = np.linalg.norm(self.n0, axis=1) > sliver * np.maximum(longest, TINY) ** 2
 
     def __call__(self, x):
         t = self.t
-        n1 = cross(x[t[:, 1]] - x[t[:, 0]], x[t[:, 2]] - x[t[:, 0]])
+        n1 = face_cross(x, t)
         return np.flatnonzero((np.einsum("ij,ij->i", self.n0, n1) <= 0) & self.ok)
 
 

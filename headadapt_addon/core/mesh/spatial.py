@@ -22,8 +22,6 @@ from .bvh import TriangleBVH
 from .triangles import closest_on_triangles, ray_triangles  # noqa: F401 (spatial.closest_on_triangles, ...)
 
 CHUNK = 1 << 16     # queries per walk of the numpy tree (bounds its memory: ~10 pairs per query and level)
-
-
 SPLIT = 1024        # more queries than twice this are walked as two halves on two threads
 
 
