@@ -185,7 +185,8 @@ class Fit:
 
     def level_basis(self, sigma):
         """(centres, their kd-tree, the umbrella Laplacian of their Wendland functions on the skin,
-        its Gram matrix) of a level with support sigma, made once per template and support."""
+        its Gram matrix, the functions at the skin's vertices) of a level with support sigma, made once
+        per template and support."""
         density = self.options.centre_density
         return template_side(self.tpl, ("basis", sigma, density), lambda: _level_basis(self.V, self.laplacian, sigma,
                                                                                        density))
@@ -202,7 +203,9 @@ class Fit:
         """The deformed skin now (n,3); each level function is evaluated on the skin once."""
         for f in self.functions:
             if id(f) not in self._at_skin:
-                self._at_skin[id(f)] = (f, f(self.V))
+                # a level's CSRBF brings its offsets at the skin (its basis there times its coefficients)
+                at_skin = getattr(f, "on_skin", None)
+                self._at_skin[id(f)] = (f, f(self.V) if at_skin is None else at_skin)
         return self.V + sum((self._at_skin[id(f)][1] for f in self.functions), np.zeros_like(self.V))
 
     def at(self, pairs):
@@ -243,7 +246,7 @@ def _level_basis(V, laplacian, sigma, density):
     res = cKDTree(V).sparse_distance_matrix(tree, sigma, output_type="ndarray")
     phi = sparse.csr_matrix((rbf.wendland(res["v"], sigma), (res["i"], res["j"])), shape=(len(V), len(centres)))
     bend = (laplacian @ phi).tocsr()
-    return centres, tree, bend, (bend.T @ bend).tocsc()
+    return centres, tree, bend, (bend.T @ bend).tocsc(), phi
 
 
 def lip_seam(tpl):

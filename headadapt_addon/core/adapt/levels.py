@@ -21,9 +21,15 @@ def csrbf_level(fit: Fit, pairs: Pairs, sigma: float, stiffness: float) -> rbf.C
     apart, with c minimising sum_i w_i |f(p_i) + o(p_i) - q_i|^2 + lambda sum_j |c_j|^2, where
     lambda = stiffness x the mean data weight a centre carries (so it means the same at every level).
     Returns (the CSRBF, its coefficient system's size)."""
-    centres, tree, bend, R = fit.level_basis(sigma)
-    res = cKDTree(pairs.p).sparse_distance_matrix(tree, sigma, output_type="ndarray")
-    phi = sparse.csr_matrix((rbf.wendland(res["v"], sigma), (res["i"], res["j"])), shape=(len(pairs), len(centres)))
+    centres, tree, bend, R, on_skin = fit.level_basis(sigma)
+    # a pair at a skin vertex takes its row of the basis on the skin (made once per template); the
+    # others (feature mesh, curvature: points between vertices) are evaluated, after them
+    pairs = pairs.take(np.argsort(pairs.vertex < 0, kind="stable"))
+    between = np.flatnonzero(pairs.vertex < 0)
+    res = cKDTree(pairs.p[between]).sparse_distance_matrix(tree, sigma, output_type="ndarray")
+    phi = sparse.vstack([on_skin[pairs.vertex[:len(pairs) - len(between)]],
+                         sparse.csr_matrix((rbf.wendland(res["v"], sigma), (res["i"], res["j"])),
+                                           shape=(len(between), len(centres)))], format="csr")
     resid = pairs.q - fit.at(pairs)
     A = (phi.T @ sparse.diags(pairs.w) @ phi).tocsc()
     # the bending of the whole displacement (levels below included), so a level may undo what the
@@ -36,7 +42,9 @@ def csrbf_level(fit: Fit, pairs: Pairs, sigma: float, stiffness: float) -> rbf.C
                                         o.solve_rtol, o.jacobi_steps, o.lu_steps)
     fit.warm[sigma] = coef
     zero = np.zeros((len(centres), 3))
-    return rbf.CSRBF(centres, sigma, zero, np.zeros((len(centres), 3, 3)), coef, A)
+    out = rbf.CSRBF(centres, sigma, zero, np.zeros((len(centres), 3, 3)), coef, A)
+    out.on_skin = on_skin @ coef            # its offsets at the skin's vertices (Fit.current)
+    return out
 
 
 def fit_level(fit: Fit, clicks: Pairs, k: int, fixed: Pairs | None = None,
@@ -55,9 +63,17 @@ def fit_level(fit: Fit, clicks: Pairs, k: int, fixed: Pairs | None = None,
     soft = Pairs(clicks.p, clicks.q, clicks.w * o.click_weight * o.click_decay ** (k - 1))
     below = list(fit.functions)
     fit.quiet[:] = False
+
+    def refit(pairs):
+        # each round's CSRBF replaces the last one's: it is fitted to what the levels below leave (the
+        # pairs come from where the last round put the skin); fitted on top of the last round instead,
+        # rounds alternated between the whole offset and a small correction of it
+        fit.functions = below
+        return csrbf_level(fit, pairs, sigma, stiffness)
+
     for _ in range(o.icp_iterations if rounds is None else rounds):
         pairs = surface_pairs(fit, fit.reach(k), k >= o.rays_from_level) + fixed + soft
-        fit.functions = below + [csrbf_level(fit, pairs, sigma, stiffness)]
+        fit.functions = below + [refit(pairs)]
     if rounds is not None:
         return pairs, sigma
     # where the scan has no room for the template's detail (closed or carved eyes, a statue's ears)
@@ -70,7 +86,7 @@ def fit_level(fit: Fit, clicks: Pairs, k: int, fixed: Pairs | None = None,
         around[fit.tris[folds].ravel()] = True
         fit.quiet |= (fit.ring @ around) > 0
         pairs = surface_pairs(fit, fit.reach(k), k >= o.rays_from_level) + fixed + soft
-        fit.functions = below + [csrbf_level(fit, pairs, sigma, stiffness)]
+        fit.functions = below + [refit(pairs)]
     return pairs, sigma
 
 
