@@ -90,7 +90,12 @@ def _assert_keys_bake_cleanly(tpl, ana):
         assert len(model.flipped(skin)) == 0, key.name
         bone = np.vstack([ana.parts["cranium"], key.moved.get("mandible", ana.parts["mandible"])])
         moved = visible & (np.linalg.norm(skin - rest, axis=1) > 1e-5)
-        assert (winding_numbers(skin[moved], bone, tris) > 0.5).sum() == 0, key.name
+        # into the bone: through its surface, where the winding number steps by 1 (by an opening of the
+        # skull, the orbit's, it passes 0.5 smoothly: a closed lid in the opening, 0.49 at rest, 0.50
+        # after a 0.03 mm pull, 0.7 mm from any bone, is not in it)
+        w = winding_numbers(skin[moved], bone, tris)
+        crossed = (w > 0.5) & (w - winding_numbers(rest[moved], bone, tris) > 0.5)
+        assert crossed.sum() == 0, key.name
 
 
 @pytest.mark.slow

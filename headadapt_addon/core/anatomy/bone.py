@@ -269,7 +269,9 @@ def lift_visible_skin(tpl, skin, cranium, mandible, most=0.0005, clearance=0.000
     """The last guarantee of the transfer: a visible skin vertex still inside the bone after the bone
     was cleared (clear_visible_skin freezes bone by a pocket: a lid at the orbit's opening) steps out
     along its own outward normal, at most `most` (0.5 mm: a sliver of bone rim, not a fit gone wrong),
-    to `clearance` outside. Returns (skin (n,3), the vertices moved, those still inside)."""
+    to `clearance` outside; where that way is longer (bone folded round the point: a statue's lid on
+    the orbit's rim), through the bone's nearest face if that is within `most`. Returns (skin (n,3),
+    the vertices moved, those still inside)."""
     from ..mesh.geometry import vertex_normals
 
     bone = np.vstack([cranium, mandible])
@@ -290,4 +292,15 @@ def lift_visible_skin(tpl, skin, cranium, mandible, most=0.0005, clearance=0.000
     skin = skin.copy()
     move = bad[out_at_most]
     skin[move] += (np.minimum(hi[out_at_most] + clearance, most))[:, None] * normals[out_at_most]
-    return skin, move, bad[~out_at_most]
+    # where the way out along the skin's normal is longer (the bone's surface folded round the point, a
+    # lid on a statue's orbit rim), out through the bone's nearest face, if that is as near
+    rest = bad[~out_at_most]
+    if len(rest):
+        from ..mesh.geometry import face_normals
+        from ..mesh.spatial import MeshQuery
+        near, face, dist = MeshQuery(bone, tpl.skull_tris, backend="numpy").closest_points(skin[rest])
+        to = near + (clearance + 1e-6) * face_normals(bone, tpl.skull_tris)[face]
+        ok = (dist <= most) & (inside(to) <= 0.5)
+        skin[rest[ok]] = to[ok]
+        move, rest = np.concatenate([move, rest[ok]]), rest[~ok]
+    return skin, move, rest
