@@ -92,7 +92,8 @@ def test_lids_close_the_eye_on_adapted_heads(tpl, legacy_heads, seed):
         if gap > CLOSED:
             open_.append((name, round(gap * 1e3, 2)))
     if open_:
-        # known, seed 3's left upper lid alone: the placed lid closes the eye (gap 0), but the
+        # known, one head's left upper lid alone (seed 7's, 6.8 mm, since the levels' ICP rounds fit the
+        # lids fully; seed 3's before, as follows): the placed lid closes the eye (gap 0), but the
         # canthus the plate finds (where the margins' edges join) lies 4.8 mm lateral of the clicked
         # inner corner 3.11, so the turn ramps from 0 to 41% across one 3 mm triangle, which folds
         # (2 triangles); the unfold relaxation around the fold opens the closed margin back up to

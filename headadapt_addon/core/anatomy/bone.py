@@ -272,12 +272,11 @@ def lift_visible_skin(tpl, skin, cranium, mandible, most=0.0005, clearance=0.000
     to `clearance` outside; where that way is longer (bone folded round the point: a statue's lid on
     the orbit's rim), through the bone's nearest face if that is within `most`. Returns (skin (n,3),
     the vertices moved, those still inside)."""
-    from ..mesh.geometry import vertex_normals
+    from ..mesh.geometry import face_normals, vertex_normals
+    from ..mesh.spatial import MeshQuery
 
     bone = np.vstack([cranium, mandible])
-    if bone_inside is None:
-        bone_inside = winding.FastWinding(bone, tpl.skull_tris)
-    inside = bone_inside.refit(bone)
+    inside = (winding.FastWinding(bone, tpl.skull_tris) if bone_inside is None else bone_inside).refit(bone)
     visible = np.flatnonzero(~tpl.hidden)
     bad = visible[inside(skin[visible]) > 0.5]
     if not len(bad):
@@ -290,14 +289,9 @@ def lift_visible_skin(tpl, skin, cranium, mandible, most=0.0005, clearance=0.000
         out = inside(skin[bad] + mid[:, None] * normals) <= 0.5
         hi, lo = np.where(out, mid, hi), np.where(out, lo, mid)
     skin = skin.copy()
-    move = bad[out_at_most]
+    move, rest = bad[out_at_most], bad[~out_at_most]
     skin[move] += (np.minimum(hi[out_at_most] + clearance, most))[:, None] * normals[out_at_most]
-    # where the way out along the skin's normal is longer (the bone's surface folded round the point, a
-    # lid on a statue's orbit rim), out through the bone's nearest face, if that is as near
-    rest = bad[~out_at_most]
-    if len(rest):
-        from ..mesh.geometry import face_normals
-        from ..mesh.spatial import MeshQuery
+    if len(rest):                             # out through the bone's nearest face
         near, face, dist = MeshQuery(bone, tpl.skull_tris, backend="numpy").closest_points(skin[rest])
         to = near + (clearance + 1e-6) * face_normals(bone, tpl.skull_tris)[face]
         ok = (dist <= most) & (inside(to) <= 0.5)

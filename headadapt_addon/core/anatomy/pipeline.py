@@ -12,8 +12,6 @@ from .bone import clear_visible_skin, keep_inside, lift_visible_skin, relax_clea
 from .model import Anatomy
 from .rigid import RIGID_FDPS, rigid_from_fdps, seat_orbits, surface_point
 
-EYE_SOCKETS = {"eye_l": "eye_socket_l", "eye_r": "eye_socket_r"}
-
 
 def transfer(tpl: Template, result: AdaptResult) -> Anatomy:
     """Carry the template's anatomy onto the adapted head of an AdaptResult (template frame, m)."""
@@ -28,12 +26,6 @@ def transfer(tpl: Template, result: AdaptResult) -> Anatomy:
     for name, (x_pair, y_pair, ref) in RIGID_FDPS.items():
         # centre through the map (it carries the socket around the part), scale and turn by eq 25
         centre = result.map_points(tpl.parts[name].verts.mean(axis=0)[None])[0]
-        if name in EYE_SOCKETS:
-            # an eye keeps its place in its socket: the lining follows the lids the finer levels fit,
-            # where the map the bone follows (result.map_points) would leave it 1-2 mm off
-            socket = tpl.region_mask(EYE_SOCKETS[name])
-            centre = geometry.sphere_centre(parts["skin"][socket]) + (tpl.parts[name].verts.mean(axis=0)
-                                                                      - geometry.sphere_centre(tpl.skin.verts[socket]))
         sim = rigid_from_fdps(tpl.parts[name].verts, tpl_fdps, fdps, x_pair, y_pair, ref, centre)
         rigid[name] = sim
         parts[name] = sim.apply(tpl.parts[name].verts)

@@ -168,13 +168,6 @@ def orient_outward(v, t, centre, sums=None):
     return out, int((vote < 0).sum())
 
 
-def sphere_centre(points):
-    """Centre (3,) of the least-squares sphere through points (n,3): |x|^2 = 2 c.x + (r^2 - |c|^2), linear."""
-    points = np.asarray(points, dtype=np.float64)
-    a = np.c_[2 * points, np.ones(len(points))]
-    return np.linalg.lstsq(a, np.sum(points ** 2, axis=1), rcond=None)[0][:3]
-
-
 def neighbour_mean(t, n):
     """(n,n) sparse row-normalised vertex adjacency of a triangle mesh: A @ x is each vertex's
     neighbours' mean (an isolated vertex gets 0)."""
