@@ -20,7 +20,7 @@ def csrbf_level(fit: Fit, pairs: Pairs, sigma: float, stiffness: float) -> rbf.C
     o(x) = sum_j c_j phi_sigma(|x - p_j|) on centres spread over the template skin sigma/support_factor
     apart, with c minimising sum_i w_i |f(p_i) + o(p_i) - q_i|^2 + lambda sum_j |c_j|^2, where
     lambda = stiffness x the mean data weight a centre carries (so it means the same at every level).
-    Returns (the CSRBF, its coefficient system's size)."""
+    Returns the CSRBF, with its offsets at the skin's vertices as `on_skin` (Fit.current uses them)."""
     centres, tree, bend, R, on_skin = fit.level_basis(sigma)
     # a pair at a skin vertex takes its row of the basis on the skin (made once per template); the
     # others (feature mesh, curvature: points between vertices) are evaluated, after them
