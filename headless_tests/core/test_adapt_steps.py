@@ -12,6 +12,8 @@ from headadapt_addon.core.adapt.level0 import AffineMap, feature_mesh, global_af
 from headadapt_addon.core.adapt.levels import csrbf_level, fit_level, solve_spd
 from headadapt_addon.core.adapt.options import FACE_REGIONS
 from headadapt_addon.core.adapt.pairs import curvature_pairs, feature_mesh_pairs, surface_pairs
+from headadapt_addon.core.adapt.pipeline import Unfolding
+from headadapt_addon.core.mesh import geometry
 
 MM = 1000.0
 
@@ -163,6 +165,23 @@ def test_a_level_s_icp_rounds_converge(tpl, case):
 
 
 @pytest.mark.slow
+def test_unfolding_relaxes_a_level_s_folds_as_it_will_be_delivered(tpl, case):
+    fit, *_ = _fit(tpl, case)
+    truth = case[2]
+    unfold = Unfolding(fit)
+    same, report = unfold(truth)            # nothing folded: the skin as it is
+    assert same is truth and report == {"folded_triangles": 0, "vertices_relaxed": 0, "folded_left": 0}
+    # a nose-tip vertex pushed 8 mm into the head turns its triangles over
+    folded = truth.copy()
+    tip = int(np.argmax(tpl.skin.verts[:, 1] * -1.0 * _face(tpl)))
+    folded[tip] += 0.008 * geometry.vertex_normals(truth, tpl.skin.tris)[tip] * -1.0
+    n = len(geometry.folded(fit.V, folded, fit.tris))
+    assert n > 0
+    out, report = unfold(folded)
+    assert report["folded_triangles"] == n and report["folded_left"] == 0 and report["vertices_relaxed"] > 0
+    assert len(geometry.folded(fit.V, out, fit.tris)) == 0 and unfold.seconds >= unfold.last > 0
+
+
 def test_adapt_recovers_the_known_deformation(tpl, case):
     scan_v, scan_t, truth, clicks = case
     res = adapt.adapt(tpl, scan_v, scan_t, clicks)

@@ -63,9 +63,11 @@ def adapt(tpl: Template, scan_verts: np.ndarray, scan_tris: np.ndarray, scan_fdp
     clicks = Pairs(P, Q, weights)
     level_zero(fit, clicks)
     judge = Judge(fit, tpl, sim, markers, names)
-    cur, dist_now, errs = judge()
-    levels = [Level(0, "rbf", len(P), len(P), *errs, time.perf_counter() - t0)]
-    best, best_verts, best_funcs, best_dist = 0, cur, list(fit.functions), dist_now
+    unfolding = Unfolding(fit)
+    cur, unfolded = unfolding(fit.current())
+    cur, dist_now, errs = judge(cur)
+    levels = [Level(0, "rbf", len(P), len(P), *errs, time.perf_counter() - t0 - unfolding.last)]
+    best, best_verts, best_funcs, best_unfolded = 0, cur, list(fit.functions), unfolded
 
     # the feature mesh over the FDPs in use (its template side is where they sit on the deformed template)
     tris = feature_mesh(P, fit.V.mean(axis=0))
@@ -85,22 +87,25 @@ def adapt(tpl: Template, scan_verts: np.ndarray, scan_tris: np.ndarray, scan_fdp
                                             min(reach, options.curvature_reach), fit.threshold / 2 ** (k + 1))
         say(0.1 + 0.85 * (k + 0.5) / (options.max_levels + 1), f"level {k}: fitting")
         pairs, sigma = fit_level(fit, clicks, k, fixed)          # csrbf_level in rounds of ICP
-        cur, dist_now, errs = judge()
-        levels.append(Level(k, "csrbf", len(pairs), len(fixed), *errs, time.perf_counter() - t0, sigma * MM))
+        # a level is judged as it would be delivered: its folds relaxed (step 4 below)
+        cur, unfolded = unfolding(fit.current())
+        cur, dist_now, errs = judge(cur)
+        levels.append(Level(k, "csrbf", len(pairs), len(fixed), *errs,
+                            time.perf_counter() - t0 - unfolding.last, sigma * MM))
         if errs[3] < levels[best].E:
-            best, best_verts, best_funcs, best_dist = k, cur, list(fit.functions), dist_now
+            best, best_verts, best_funcs, best_unfolded = k, cur, list(fit.functions), unfolded
         elif options.stop_at_minimum:
             break
 
     # 4. where the scan has no room for the template's detail (closed eyes under open lids) the fit
-    # folds a few triangles over: relax the displacement around them until none is folded
+    # folds a few triangles over: the displacement around them was relaxed until none is folded
+    # (Unfolding, at every level, so that the level kept is the best as delivered)
     t0 = time.perf_counter()
-    n_folded = len(geometry.folded(fit.V, best_verts, fit.tris))
-    verts, moved, left = geometry.unfold(fit.V, best_verts, fit.tris)
+    verts, unfolded = best_verts, best_unfolded
     # the distances reported: exact closest points on the scan, by the paper's compatibility rule
     de = fit.distance_error(verts, exact=True)
     best_dist = np.where(de.matched, de.dist, np.nan)
-    unfolded = {"folded_triangles": n_folded, "vertices_relaxed": int(moved.sum()), "folded_left": left}
+    left = unfolded["folded_left"]
     face = tpl.region_mask(*FACE_REGIONS)
     outcome = fit_outcome(best_dist, face, left, judge.marker_rms_mm(best_funcs), flagged, options,
                           cal_info["handedness"]["notes"])
@@ -109,7 +114,7 @@ def adapt(tpl: Template, scan_verts: np.ndarray, scan_tris: np.ndarray, scan_fdp
     prep = fit.scan.seconds
     stages = {"calibrate": t_cal - prep["build"], "prepare": prep["build"] + prep["curvature"],
               **{f"level_{lv.level}": lv.seconds - (prep["curvature"] if lv.level == 1 else 0.0) for lv in levels},
-              "unfold": time.perf_counter() - t0}
+              "unfold": unfolding.seconds + time.perf_counter() - t0}
     return AdaptResult(verts=verts, verts_scan=sim.inverse().apply(verts), similarity=sim, levels=levels,
                        best_level=best, functions=best_funcs, flagged=flagged, dropped=dropped,
                        calibration_info=cal_info, seconds=time.perf_counter() - t_start, distances=best_dist,
@@ -162,6 +167,29 @@ def check_on_surface(scan: ScanSide, q_fdp: dict[str, np.ndarray], options: Adap
                                 f"after calibration: landmarks must be picked on this scan (wrong file or unit?)")
 
 
+class Unfolding:
+    """Step 4 for any level: skin (n,3) -> (the skin with its folded triangles relaxed by
+    geometry.unfold, {"folded_triangles", "vertices_relaxed", "folded_left"}); keeps the seconds spent
+    (`last` call, and in all). A level that folds is judged as it will be delivered, unfolded: on
+    Fran's closed eyes level 4 folded 19 lid triangles (level 3: 9), relaxed over 1290 vertices, and
+    its seen face ended 0.80 mm RMS from the scan against level 3's 0.53."""
+
+    def __init__(self, fit):
+        self.fit, self.seconds, self.last = fit, 0.0, 0.0
+
+    def __call__(self, cur):
+        t0 = time.perf_counter()
+        fit = self.fit
+        n_folded = len(geometry.folded(fit.V, cur, fit.tris))
+        moved, left = 0, 0
+        if n_folded:
+            cur, relaxed, left = geometry.unfold(fit.V, cur, fit.tris)
+            moved = int(relaxed.sum())
+        self.last = time.perf_counter() - t0
+        self.seconds += self.last
+        return cur, {"folded_triangles": n_folded, "vertices_relaxed": moved, "folded_left": left}
+
+
 class Judge:
     """The errors of the fit so far (sec 5): E_d over the skin, E_m over held-out markers (the
     template's named markers, or FDPs the user clicked but held out), E = alpha E_d + beta E_m."""
@@ -173,10 +201,11 @@ class Judge:
         self.marker_tpl = np.array([known[m] for m in use]) if use else None
         self.marker_scan = sim.apply(np.array([markers[m] for m in use])) if use else None
 
-    def __call__(self):
-        """(skin now (n,3), distance per vertex (nan: unmatched), (E_d, E_d RMS mm, E_m, E, coverage))."""
+    def __call__(self, cur=None):
+        """(skin (n,3), distance per vertex (nan: unmatched), (E_d, E_d RMS mm, E_m, E, coverage)) of
+        the fit now, or of the skin `cur` given (the fit's, unfolded)."""
         fit, o = self.fit, self.fit.options
-        cur = fit.current()
+        cur = fit.current() if cur is None else cur
         de = fit.distance_error(cur)
         e_d = float(np.sum(de.w * (de.dist * MM) ** 2) / len(cur))
         rms = float(np.sqrt(np.sum(de.w * (de.dist * MM) ** 2) / max(np.sum(de.w), TINY)))
