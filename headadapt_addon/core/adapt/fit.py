@@ -10,7 +10,7 @@ import numpy as np
 from scipy import sparse
 from scipy.spatial import cKDTree
 
-from ..mesh import geometry, spatial
+from ..mesh import curvature, geometry, spatial
 from . import metrics, rbf
 
 BORDER_WIDTH = 0.5     # a scan point this many median edges from the border is on it (metrics.distance_error)
@@ -112,7 +112,7 @@ class ScanSide:
         if self._curv is None:
             t0 = time.perf_counter()
             tris = self.tris if region is None else self.tris[region[self.tris].all(axis=1)]
-            self._curv = geometry.mean_curvature(self.verts, tris)
+            self._curv = curvature.mean_curvature(self.verts, tris, self.vertex_normals)
             self.seconds["curvature"] = time.perf_counter() - t0
         return self._curv
 
