@@ -5,8 +5,8 @@ from scipy.spatial import ConvexHull
 from scipy.spatial.transform import Rotation
 
 from headadapt_addon.core.adapt import calibration, metrics, rbf
-from headadapt_addon.core.adapt.fit import ScanSide
 from headadapt_addon.core.adapt.options import AdaptOptions
+from headadapt_addon.core.adapt.scan import ScanSide
 from headadapt_addon.core.exceptions import LandmarkError, MeshError
 from headadapt_addon.core.mesh import curvature, geometry, spatial
 

@@ -22,12 +22,13 @@ from ..template import Template
 from ..tol import MM, TINY
 from . import calibration, metrics
 from .clicks import check_clicks, closed_mouth, handedness_notes
-from .fit import Fit, Pairs, ScanSide
+from .fit import Fit, Pairs
 from .level0 import feature_mesh, level_zero
 from .levels import fit_level
 from .options import FACE_REGIONS, SCANNER_VISIBLE_PARTS, AdaptOptions, AdaptResult, Level
 from .outcome import fit_outcome
 from .pairs import curvature_pairs, face_box, feature_mesh_pairs
+from .scan import ScanSide
 
 
 def adapt(tpl: Template, scan_verts: np.ndarray, scan_tris: np.ndarray, scan_fdps: dict[str, np.ndarray],
@@ -45,6 +46,9 @@ def adapt(tpl: Template, scan_verts: np.ndarray, scan_tris: np.ndarray, scan_fdp
     # 1. calibration (sec 3.1), after left/right labels that look swapped are put right
     say(0.02, "calibrating")
     fit, tpl_fdps, q_fdp, sim, cal_info = calibrate(tpl, scan_verts, scan_tris, scan_fdps, options)
+    box = face_box(fit.scan, q_fdp)
+    if options.use_curvature and options.max_levels > 0:
+        fit.scan.curvature(box)             # level 1's, made while the scan's spatial tree is built
     check_on_surface(fit.scan, q_fdp, options)
     t_cal = time.perf_counter() - t_start
 
@@ -70,7 +74,6 @@ def adapt(tpl: Template, scan_verts: np.ndarray, scan_tris: np.ndarray, scan_fdp
     # the feature mesh over the FDPs in use (its template side is where they sit on the deformed template)
     tris = feature_mesh(P, fit.V.mean(axis=0))
     fmesh = {"q": Q.copy(), "t": tris, "dead": np.zeros(len(tris), bool)}
-    box = face_box(fit.scan, q_fdp)
 
     # 3. levels 1..K (sec 4): new pairs, then a CSRBF offset with support halving per level
     for k in range(1, options.max_levels + 1):
@@ -105,10 +108,10 @@ def adapt(tpl: Template, scan_verts: np.ndarray, scan_tris: np.ndarray, scan_fdp
     outcome = fit_outcome(best_dist, face, left, judge.marker_rms_mm(best_funcs), flagged, options,
                           cal_info["handedness"]["notes"])
     say(1.0, f"done: best level {best}")
-    # the scan's preparation (ScanSide: built in calibrate, curvature on first use in level 1) apart
-    prep = fit.scan.seconds
-    stages = {"calibrate": t_cal - prep["build"], "prepare": prep["build"] + prep["curvature"],
-              **{f"level_{lv.level}": lv.seconds - (prep["curvature"] if lv.level == 1 else 0.0) for lv in levels},
+    # the scan's preparation (ScanSide's normals and border, its spatial tree's wait, the curvature: all
+    # before level 0) apart
+    prep = fit.scan.seconds["build"] + fit.scan.seconds["curvature"]
+    stages = {"calibrate": t_cal - prep, "prepare": prep, **{f"level_{lv.level}": lv.seconds for lv in levels},
               "unfold": time.perf_counter() - t0}
     return AdaptResult(verts=verts, verts_scan=sim.inverse().apply(verts), similarity=sim, levels=levels,
                        best_level=best, functions=best_funcs, flagged=flagged, dropped=dropped,
