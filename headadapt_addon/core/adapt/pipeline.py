@@ -28,7 +28,7 @@ from .levels import fit_level
 from .options import FACE_REGIONS, SCANNER_VISIBLE_PARTS, AdaptOptions, AdaptResult, Level
 from .outcome import fit_outcome
 from .pairs import curvature_pairs, face_box, feature_mesh_pairs
-from .scan import ScanSide
+from .scan import ScanSide, start_spatial
 
 
 def adapt(tpl: Template, scan_verts: np.ndarray, scan_tris: np.ndarray, scan_fdps: dict[str, np.ndarray],
@@ -136,6 +136,9 @@ def calibrate(tpl: Template, scan_verts: np.ndarray, scan_tris: np.ndarray, scan
     sim, info = calibration.calibrate(given, tpl_fdps, method=options.calibration)
     sv = sim.apply(scan_verts)
     q_fdp = {k: sim.apply(v) for k, v in given.items()}
+    # the scan's spatial tree, begun on a worker thread before the winding check below: kept unless it
+    # turns a piece (a turned triangle's corners come in another order, and so its rounding)
+    early = start_spatial(sv, scan_tris, options) if options.backend == "numpy" else None
     # normals out of the head, whatever winding the file has (pairs are matched by normals)
     # (the triangles' cross products and their sums per vertex serve the check and the scan's normals:
     # computed once, the products again only for the triangles turned, the sums then anew)
@@ -144,11 +147,11 @@ def calibrate(tpl: Template, scan_verts: np.ndarray, scan_tris: np.ndarray, scan
     turned, flipped = geometry.orient_outward(sv, scan_tris, tpl.parts["cranium"].verts.mean(axis=0), sums)
     if flipped:
         redo = np.flatnonzero((turned != scan_tris).any(axis=1))
-        fc[redo], sums = geometry.face_cross(sv, turned[redo]), None
+        fc[redo], sums, early = geometry.face_cross(sv, turned[redo]), None, None
     scan_tris = turned
     notes = handedness_notes(handed, flipped)
     info = {**info, "scan_pieces_turned": flipped, "handedness": {**handed, "notes": notes}, "unused_fdps": unused}
-    scan = ScanSide(sv, scan_tris, options, fc, sums)
+    scan = ScanSide(sv, scan_tris, options, fc, sums, early)
     threshold = float(np.ptp(tpl.skin.verts[:, 0])) / 10.0     # the paper's width / 10
     return Fit(tpl, scan, options, threshold), tpl_fdps, q_fdp, sim, info
 

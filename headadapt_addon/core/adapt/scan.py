@@ -1,9 +1,10 @@
 """The calibrated scan as the levels query it (ScanSide): its spatial tree, normals, border and curvature.
 
 The spatial side (the numpy backend's tree of every triangle, the median edge, the vertices' kd-tree)
-is built on a worker thread while this one makes the normals and the border and the caller the
-curvature: numpy and scipy release the GIL on large arrays, so on a 2-core machine a 1M-vertex scan
-is prepared in about the time of the longer of the two. Whatever needs the tree waits for it there.
+is built on a worker thread (begun by calibrate before its winding check) while this one makes the
+winding check, the normals and the border and the caller the curvature: numpy and scipy release the
+GIL on large arrays, so on a 2-core machine a 1M-vertex scan is prepared in about the time of the
+longer of the two. Whatever needs the tree waits for it there.
 """
 
 from __future__ import annotations
@@ -19,18 +20,43 @@ from ..mesh import curvature, geometry, spatial
 BORDER_WIDTH = 0.5     # a scan point this many median edges from the border is on it (metrics.distance_error)
 
 
+def start_spatial(verts, tris, options):
+    """The scan's spatial side (see ScanSide._ready): a future of the pool for the numpy backend (made on a
+    worker thread), made here for Blender's tree (backend "bvh": on the calling thread)."""
+    make = lambda: _spatial_side(verts, tris, options.backend, options.dense_spacing)
+    return threads.pool().submit(make) if options.backend == "numpy" else make()
+
+
+def _spatial_side(verts, tris, backend, dense_spacing):
+    """(the MeshQuery, the median edge, coarse, the vertices' kd-tree or None)."""
+    query = spatial.MeshQuery(verts, tris, backend=backend)
+    # the median of the triangles' first edges; the numpy tree has their lengths (the same numbers)
+    tree = getattr(query, "tree", None)
+    median_edge = tree.median_edge() if tree is not None else \
+        float(np.median(np.linalg.norm(verts[tris[:, 0]] - verts[tris[:, 1]], axis=1)))
+    coarse = median_edge > dense_spacing
+    # the dense scans' tangent planes only: the numpy tree's own kd-tree of the vertices (its closest
+    # points' bound) when it holds them all, built once for both; else one built alike (unbalanced,
+    # loose: see bvh.vertex_tree)
+    vtree = None
+    if not coarse:
+        vtree = tree.vertex_tree() if tree is not None else None
+        if vtree is None or vtree.n != len(verts):
+            vtree = cKDTree(verts, balanced_tree=False, compact_nodes=False)
+    return query, median_edge, coarse, vtree
+
+
 class ScanSide:
     """The calibrated scan with its queries, normals, boundary and curvature (computed once)."""
 
-    def __init__(self, verts, tris, options, fc=None, sums=None):
+    def __init__(self, verts, tris, options, fc=None, sums=None, spatial=None):
         """fc, sums: the triangles' geometry.face_cross and vertex_sums if the caller has them (calibrate
-        does: the winding check needs them too); the normals come from them, computed once."""
+        does: the winding check needs them too); the normals come from them, computed once. spatial:
+        start_spatial(verts, tris, options) if the caller began it (on these very triangles)."""
         t0 = time.perf_counter()
         self.verts, self.tris = verts, tris
         self.seconds = {"build": 0.0, "curvature": 0.0}        # the stages' report: this thread's seconds
-        make = lambda: self._spatial_side(options.backend, options.dense_spacing)
-        # Blender's tree (backend "bvh") is made here, on the calling thread
-        self._spatial = threads.pool().submit(make) if options.backend == "numpy" else make()
+        self._spatial = start_spatial(verts, tris, options) if spatial is None else spatial
         fc = geometry.face_cross(verts, tris) if fc is None else fc
         self.face_normals = geometry.face_normals(verts, tris, fc)
         self.vertex_normals = geometry.vertex_normals(verts, tris, geometry.vertex_sums(tris, fc, len(verts))
@@ -44,24 +70,6 @@ class ScanSide:
         self._curv = None
         self._border = None
         self.seconds["build"] += time.perf_counter() - t0
-
-    def _spatial_side(self, backend, dense_spacing):
-        """(the MeshQuery, the median edge, coarse, the vertices' kd-tree or None)."""
-        query = spatial.MeshQuery(self.verts, self.tris, backend=backend)
-        # the median of the triangles' first edges; the numpy tree has their lengths (the same numbers)
-        tree = getattr(query, "tree", None)
-        median_edge = tree.median_edge() if tree is not None else \
-            float(np.median(np.linalg.norm(self.verts[self.tris[:, 0]] - self.verts[self.tris[:, 1]], axis=1)))
-        coarse = median_edge > dense_spacing
-        # the dense scans' tangent planes only: the numpy tree's own kd-tree of the vertices (its closest
-        # points' bound) when it holds them all, built once for both; else one built alike (unbalanced,
-        # loose: see bvh.vertex_tree)
-        vtree = None
-        if not coarse:
-            vtree = tree.vertex_tree() if tree is not None else None
-            if vtree is None or vtree.n != len(self.verts):
-                vtree = cKDTree(self.verts, balanced_tree=False, compact_nodes=False)
-        return query, median_edge, coarse, vtree
 
     def _ready(self):
         """The spatial side, once built (the wait counts to the scan's preparation)."""
