@@ -46,6 +46,21 @@ def _spatial_side(verts, tris, backend, dense_spacing):
     return query, median_edge, coarse, vtree
 
 
+class FaceNormals:
+    """The scan's unit face normals, indexed like an (k,3) array but made for the faces asked only (from
+    the triangles' cross products; the same numbers as geometry.face_normals): a dense scan's levels
+    look up a few thousand of its 2M triangles."""
+
+    def __init__(self, fc):
+        self.fc = fc
+
+    def __getitem__(self, faces):
+        return geometry.face_normals(None, None, self.fc[faces])
+
+    def __len__(self):
+        return len(self.fc)
+
+
 class ScanSide:
     """The calibrated scan with its queries, normals, boundary and curvature (computed once)."""
 
@@ -58,7 +73,7 @@ class ScanSide:
         self.seconds = {"build": 0.0, "curvature": 0.0}        # the stages' report: this thread's seconds
         self._spatial = start_spatial(verts, tris, options) if spatial is None else spatial
         fc = geometry.face_cross(verts, tris) if fc is None else fc
-        self.face_normals = geometry.face_normals(verts, tris, fc)
+        self.face_normals = FaceNormals(fc)
         self.vertex_normals = geometry.vertex_normals(verts, tris, geometry.vertex_sums(tris, fc, len(verts))
                                                       if sums is None else sums)
         self.border_edges = geometry.boundary_edges(tris)          # found once: faces, vertices, on_border
