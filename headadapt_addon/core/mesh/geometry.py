@@ -22,7 +22,8 @@ def face_cross(v, t):
     """Cross product (k,3) of every triangle's two edges from its first corner: along its normal
     (right-hand rule), twice its area long. Computed once, it gives face_normals and vertex_normals
     the same numbers they would compute (a 2M-triangle scan needs both, and its winding check)."""
-    return cross(v[t[:, 1]] - v[t[:, 0]], v[t[:, 2]] - v[t[:, 0]])
+    a = v[t[:, 0]]                          # gathered once (a 2M-triangle scan: 48 MB)
+    return cross(v[t[:, 1]] - a, v[t[:, 2]] - a)
 
 
 def face_areas(v, t):
