@@ -42,6 +42,15 @@ if __name__ == "__main__" and not __package__:      # run as a script (blender -
     sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
     __package__ = "headadapt_addon"
 
+if __name__ == "__main__":
+    # numpy asks for transparent huge pages on every array of 4 MB or more (madvise). Where the kernel's
+    # THP defrag setting is "madvise" (Ubuntu's default), the first touch of such memory may stall on
+    # compaction (numpy issue 31590); a 1M-vertex scan's preparation allocates gigabytes of short-lived
+    # arrays, and on the 2-core test machine these faults cost 1.5-2 s of a 8.5 s command. Checked by
+    # numpy at import, so set before it is imported (only here, in the command's own process and the
+    # folder's children; the user's own NUMPY_MADVISE_HUGEPAGE wins; Blender's process is left alone).
+    os.environ.setdefault("NUMPY_MADVISE_HUGEPAGE", "0")
+
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 SAMPLE_DIR = ROOT / "assets" / "sample_scan"
 SCAN_SUFFIXES = (".obj", ".ply", ".stl")

@@ -7,12 +7,13 @@ import pytest
 from headadapt_addon.core import adapt, mpeg4
 from headadapt_addon.core.adapt import calibration
 from headadapt_addon.core.adapt.clicks import check_clicks
-from headadapt_addon.core.adapt.fit import Fit, Pairs, ScanSide
+from headadapt_addon.core.adapt.fit import Fit, Pairs
 from headadapt_addon.core.adapt.level0 import AffineMap, feature_mesh, global_affine, global_rbf, level_zero
 from headadapt_addon.core.adapt.levels import csrbf_level, fit_level, solve_spd
 from headadapt_addon.core.adapt.options import FACE_REGIONS
 from headadapt_addon.core.adapt.pairs import curvature_pairs, feature_mesh_pairs, surface_pairs
 from headadapt_addon.core.adapt.pipeline import Unfolding
+from headadapt_addon.core.adapt.scan import ScanSide
 from headadapt_addon.core.mesh import geometry
 
 MM = 1000.0

@@ -5,10 +5,10 @@ from scipy.spatial import ConvexHull
 from scipy.spatial.transform import Rotation
 
 from headadapt_addon.core.adapt import calibration, metrics, rbf
-from headadapt_addon.core.adapt.fit import ScanSide
 from headadapt_addon.core.adapt.options import AdaptOptions
+from headadapt_addon.core.adapt.scan import ScanSide
 from headadapt_addon.core.exceptions import LandmarkError, MeshError
-from headadapt_addon.core.mesh import geometry, spatial
+from headadapt_addon.core.mesh import curvature, geometry, spatial
 
 
 @pytest.mark.parametrize("method", ["paper", "umeyama", "auto"])
@@ -87,7 +87,7 @@ def _sphere(radius, n=12000):
 @pytest.mark.parametrize("radius", [0.01, 0.1, 80.0])
 def test_mean_curvature_of_a_sphere_is_one_over_r(radius):
     p, t = _sphere(radius)
-    h, valid = geometry.mean_curvature(p, t)
+    h, valid = curvature.mean_curvature(p, t)
     assert valid.all()
     assert abs(np.median(h) * radius - 1) < 0.02
     assert np.percentile(np.abs(h * radius - 1), 95) < 0.02
@@ -96,7 +96,7 @@ def test_mean_curvature_of_a_sphere_is_one_over_r(radius):
 def test_curvature_excludes_the_boundary():
     p, t = _sphere(1.0)
     keep = p[t].mean(axis=1)[:, 2] > 0
-    h, valid = geometry.mean_curvature(p, t[keep])
+    h, valid = curvature.mean_curvature(p, t[keep])
     border = geometry.boundary_vertices(t[keep], len(p))
     assert border.sum() > 50 and not valid[border].any()
 

@@ -1,120 +1,21 @@
-"""What the levels share: the calibrated scan with its queries (ScanSide), feature-point pairs
-(Pairs), and the fit in progress (Fit: template, scan, options, the level functions so far)."""
+"""What the levels share: feature-point pairs (Pairs) and the fit in progress (Fit: template, scan,
+options, the level functions so far); the calibrated scan with its queries (ScanSide) is scan.py's."""
 
 from __future__ import annotations
 
 import dataclasses
-import time
 
 import numpy as np
 from scipy import sparse
 from scipy.spatial import cKDTree
 
-from ..mesh import geometry, spatial
+from ..mesh import geometry
 from . import metrics, rbf
-
-BORDER_WIDTH = 0.5     # a scan point this many median edges from the border is on it (metrics.distance_error)
 
 
 def face_weights(tpl):
     w = tpl.region_weights[tpl.region]
     return w[tpl.skin.tris].min(axis=1)
-
-
-class ScanSide:
-    """The calibrated scan with its queries, normals, boundary and curvature (computed once)."""
-
-    def __init__(self, verts, tris, options, fc=None, sums=None):
-        """fc, sums: the triangles' geometry.face_cross and vertex_sums if the caller has them (calibrate
-        does: the winding check needs them too); the normals come from them, computed once."""
-        t0 = time.perf_counter()
-        self.verts, self.tris = verts, tris
-        self.query = spatial.MeshQuery(verts, tris, backend=options.backend)
-        fc = geometry.face_cross(verts, tris) if fc is None else fc
-        self.face_normals = geometry.face_normals(verts, tris, fc)
-        self.vertex_normals = geometry.vertex_normals(verts, tris, geometry.vertex_sums(tris, fc, len(verts))
-                                                      if sums is None else sums)
-        self.border_edges = geometry.boundary_edges(tris)          # found once: faces, vertices, on_border
-        on = np.zeros(len(verts), bool)
-        on[self.border_edges.ravel()] = True
-        self.boundary_faces = on[tris].any(axis=1)                  # as geometry.boundary_faces
-        self.boundary_verts = np.zeros(len(verts), bool)
-        self.boundary_verts[tris[self.boundary_faces].ravel()] = True
-        # the median of the triangles' first edges; the numpy tree has their lengths (the same numbers)
-        tree = getattr(self.query, "tree", None)
-        self.median_edge = tree.median_edge() if tree is not None else \
-            float(np.median(np.linalg.norm(verts[tris[:, 0]] - verts[tris[:, 1]], axis=1)))
-        self.coarse = self.median_edge > options.dense_spacing
-        self.vertex_tree = None if self.coarse else self._vertex_tree()  # the dense scans' tangent planes only
-        self._curv = None
-        self._border = None
-        self.seconds = {"build": time.perf_counter() - t0, "curvature": 0.0}     # the stages' report
-
-    def _vertex_tree(self):
-        """A kd-tree of the vertices: the numpy tree's own (its closest points' bound) when it holds them
-        all, built once for both; else one built alike (unbalanced, loose: see bvh.vertex_tree)."""
-        tree = getattr(self.query, "tree", None)
-        tree = tree.vertex_tree() if tree is not None else None
-        if tree is None or tree.n != len(self.verts):
-            tree = cKDTree(self.verts, balanced_tree=False, compact_nodes=False)
-        return tree
-
-    def nearest_on_plane(self, points):
-        """(point, normal, distance, on a hole's border) per query point for ICP pairs: on a dense scan
-        the nearest scan vertex's tangent plane (a fast stand-in for the closest surface point: off
-        by curvature x spacing^2 / 2, under 0.05 mm at 2 mm spacing), else the closest point with its
-        face's normal, on the border if that face touches it. At a tie (a point on a vertex or edge)
-        the face is the spatial backend's choice (numpy's: spatial.py's rule); the report judges
-        the point itself (metrics.distance_error), so its verdict does not hang on that choice.
-        (Judging the pairs that way too, normal_at and on_border, moved the CT's pressed skull 1 mm
-        off in depth at half an edge's border and its skin's p95 from 1.90 to 2.24 mm at one edge.)"""
-        if self.coarse:
-            q, f, d = self.query.closest_points(points)
-            return q, self.face_normals[f], d, self.boundary_faces[f]
-        _, i = self.vertex_tree.query(points)
-        n = self.vertex_normals[i]
-        q = points - np.einsum("ij,ij->i", points - self.verts[i], n)[:, None] * n
-        return q, n, np.linalg.norm(q - points, axis=1), self.boundary_verts[i]
-
-    def normal_at(self, points, faces):
-        """The scan's normal (k,3) at points on faces: the vertex normals interpolated (barycentric), so
-        a point on a vertex or edge gets one normal whichever face it was found on."""
-        a, b, c = (self.verts[self.tris[faces, j]] for j in range(3))
-        bary = np.clip(spatial.barycentric(points, a, b, c), 0.0, 1.0)
-        return np.einsum("kj,kjd->kd", bary, self.vertex_normals[self.tris[faces]])
-
-    def on_border(self, points, width=None):
-        """Whether points on the scan (k,3) lie on a hole's (or the outer) border: within `width` (default
-        BORDER_WIDTH x the median edge) of an edge only one triangle uses, measured from the point
-        itself (exact closest points on those edges), whichever face it was found on."""
-        if self._border is None:
-            e = self.border_edges
-            if len(e):
-                longest = float(np.linalg.norm(self.verts[e[:, 0]] - self.verts[e[:, 1]], axis=1).max())
-                self._border = (spatial.MeshQuery(self.verts, np.c_[e, e[:, 1]]), cKDTree(self.verts[np.unique(e)]),
-                                longest)
-            else:
-                self._border = (None, None, 0.0)
-        query, ends, longest = self._border
-        out = np.zeros(len(points), bool)
-        if query is None:
-            return out
-        width = BORDER_WIDTH * self.median_edge if width is None else width
-        # a point on a border edge is within half its length of an end: only points that near a border
-        # vertex can be within width of the border, and only those are measured exactly
-        near = ends.query(points, distance_upper_bound=width + 0.5 * longest)[0] < np.inf
-        out[near] = query.closest_points(points[near])[2] <= width
-        return out
-
-    def curvature(self, region=None):
-        """(H, valid) per scan vertex; with a vertex mask, computed on the triangles inside it only
-        (the cut's border counts as boundary, so its vertices are not valid)."""
-        if self._curv is None:
-            t0 = time.perf_counter()
-            tris = self.tris if region is None else self.tris[region[self.tris].all(axis=1)]
-            self._curv = geometry.mean_curvature(self.verts, tris)
-            self.seconds["curvature"] = time.perf_counter() - t0
-        return self._curv
 
 
 @dataclasses.dataclass
@@ -258,13 +159,6 @@ def lip_seam(tpl):
     rim[e[inside[e[:, 0]] ^ inside[e[:, 1]]].ravel()] = True
     lips = np.isin(region, [tpl.region_names.index("upper_lip"), tpl.region_names.index("lower_lip")])
     return np.flatnonzero(rim & lips)
-
-
-def near_boundary(scan):
-    """Scan vertices on or next to a boundary (their curvature is not trusted, paper sec 4.1)."""
-    mask = np.zeros(len(scan.verts), bool)
-    mask[scan.tris[scan.boundary_faces].ravel()] = True
-    return mask
 
 
 def spread(points, radius):

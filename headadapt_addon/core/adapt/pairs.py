@@ -6,7 +6,8 @@ from __future__ import annotations
 import numpy as np
 
 from ..mesh import geometry, spatial
-from .fit import Fit, Pairs, ScanSide, near_boundary, spread
+from .fit import Fit, Pairs, spread
+from .scan import ScanSide, near_boundary
 
 
 def feature_mesh_pairs(fit: Fit, mesh: dict, reach: float) -> Pairs:

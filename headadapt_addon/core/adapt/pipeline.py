@@ -22,12 +22,13 @@ from ..template import Template
 from ..tol import MM, TINY
 from . import calibration, metrics
 from .clicks import check_clicks, closed_mouth, handedness_notes
-from .fit import Fit, Pairs, ScanSide
+from .fit import Fit, Pairs
 from .level0 import feature_mesh, level_zero
 from .levels import fit_level
 from .options import FACE_REGIONS, SCANNER_VISIBLE_PARTS, AdaptOptions, AdaptResult, Level
 from .outcome import fit_outcome
 from .pairs import curvature_pairs, face_box, feature_mesh_pairs
+from .scan import ScanSide, start_spatial
 
 
 def adapt(tpl: Template, scan_verts: np.ndarray, scan_tris: np.ndarray, scan_fdps: dict[str, np.ndarray],
@@ -45,6 +46,9 @@ def adapt(tpl: Template, scan_verts: np.ndarray, scan_tris: np.ndarray, scan_fdp
     # 1. calibration (sec 3.1), after left/right labels that look swapped are put right
     say(0.02, "calibrating")
     fit, tpl_fdps, q_fdp, sim, cal_info = calibrate(tpl, scan_verts, scan_tris, scan_fdps, options)
+    box = face_box(fit.scan, q_fdp)
+    if options.use_curvature and options.max_levels > 0:
+        fit.scan.curvature(box)             # level 1's, made while the scan's spatial tree is built
     check_on_surface(fit.scan, q_fdp, options)
     t_cal = time.perf_counter() - t_start
 
@@ -72,7 +76,6 @@ def adapt(tpl: Template, scan_verts: np.ndarray, scan_tris: np.ndarray, scan_fdp
     # the feature mesh over the FDPs in use (its template side is where they sit on the deformed template)
     tris = feature_mesh(P, fit.V.mean(axis=0))
     fmesh = {"q": Q.copy(), "t": tris, "dead": np.zeros(len(tris), bool)}
-    box = face_box(fit.scan, q_fdp)
 
     # 3. levels 1..K (sec 4): new pairs, then a CSRBF offset with support halving per level
     for k in range(1, options.max_levels + 1):
@@ -110,10 +113,10 @@ def adapt(tpl: Template, scan_verts: np.ndarray, scan_tris: np.ndarray, scan_fdp
     outcome = fit_outcome(best_dist, face, left, judge.marker_rms_mm(best_funcs), flagged, options,
                           cal_info["handedness"]["notes"])
     say(1.0, f"done: best level {best}")
-    # the scan's preparation (ScanSide: built in calibrate, curvature on first use in level 1) apart
-    prep = fit.scan.seconds
-    stages = {"calibrate": t_cal - prep["build"], "prepare": prep["build"] + prep["curvature"],
-              **{f"level_{lv.level}": lv.seconds - (prep["curvature"] if lv.level == 1 else 0.0) for lv in levels},
+    # the scan's preparation (ScanSide's normals and border, its spatial tree's wait, the curvature: all
+    # before level 0) apart
+    prep = fit.scan.seconds["build"] + fit.scan.seconds["curvature"]
+    stages = {"calibrate": t_cal - prep, "prepare": prep, **{f"level_{lv.level}": lv.seconds for lv in levels},
               "unfold": unfolding.seconds + time.perf_counter() - t0}
     return AdaptResult(verts=verts, verts_scan=sim.inverse().apply(verts), similarity=sim, levels=levels,
                        best_level=best, functions=best_funcs, flagged=flagged, dropped=dropped,
@@ -138,6 +141,9 @@ def calibrate(tpl: Template, scan_verts: np.ndarray, scan_tris: np.ndarray, scan
     sim, info = calibration.calibrate(given, tpl_fdps, method=options.calibration)
     sv = sim.apply(scan_verts)
     q_fdp = {k: sim.apply(v) for k, v in given.items()}
+    # the scan's spatial tree, begun on a worker thread before the winding check below: kept unless it
+    # turns a piece (a turned triangle's corners come in another order, and so its rounding)
+    early = start_spatial(sv, scan_tris, options) if options.backend == "numpy" else None
     # normals out of the head, whatever winding the file has (pairs are matched by normals)
     # (the triangles' cross products and their sums per vertex serve the check and the scan's normals:
     # computed once, the products again only for the triangles turned, the sums then anew)
@@ -146,11 +152,11 @@ def calibrate(tpl: Template, scan_verts: np.ndarray, scan_tris: np.ndarray, scan
     turned, flipped = geometry.orient_outward(sv, scan_tris, tpl.parts["cranium"].verts.mean(axis=0), sums)
     if flipped:
         redo = np.flatnonzero((turned != scan_tris).any(axis=1))
-        fc[redo], sums = geometry.face_cross(sv, turned[redo]), None
+        fc[redo], sums, early = geometry.face_cross(sv, turned[redo]), None, None
     scan_tris = turned
     notes = handedness_notes(handed, flipped)
     info = {**info, "scan_pieces_turned": flipped, "handedness": {**handed, "notes": notes}, "unused_fdps": unused}
-    scan = ScanSide(sv, scan_tris, options, fc, sums)
+    scan = ScanSide(sv, scan_tris, options, fc, sums, early)
     threshold = float(np.ptp(tpl.skin.verts[:, 0])) / 10.0     # the paper's width / 10
     return Fit(tpl, scan, options, threshold), tpl_fdps, q_fdp, sim, info
 

@@ -2,9 +2,9 @@
 
 The tree is implicit and complete: 2^depth leaves of at most `leaf_size` triangles each, made by one
 sort of the triangles' centroids along a Morton curve (a linear BVH: each node holds a run of that
-order, cut in the middle; one argsort instead of a median split per level, 4x faster to build on
-a 2M-triangle scan, its queries as fast); node j of level l covers leaves j 2^(depth-l) .. (j+1) 2^(depth-l) - 1,
-so a node is its level and its number, and its box the union of its children's. Every triangle's
+order, cut in the middle; 4x faster to build on a 2M-triangle scan than median splits, its queries
+as fast); node j of level l covers leaves j 2^(depth-l) .. (j+1) 2^(depth-l) - 1: a node is its level
+and its number, its box the union of its children's. Every triangle's
 box is widened by `pad` (EXACT x the mesh's size) and by the slack of the ray test (RAY_TOL of its
 barycentrics), so neither rounding nor that slack ever drops a triangle that can answer.
 
@@ -90,20 +90,23 @@ class TriangleBVH:
         self.det_min = TINY * np.maximum(np.sqrt(self.e11 * self.e22), 1e-300)
         n2 = self.n[0] * self.n[0] + self.n[1] * self.n[1] + self.n[2] * self.n[2]
         self.flat = n2 <= TINY * TINY * self.e11 * self.e22           # as flat_triangles: taken as 3 segments
-        self._near = self._vtree = None                                 # closest-point data, made on first use
+        self._near = self._vtree = None                                 # closest-point data (_spheres, vertex_tree)
 
-    def _closest_data(self):
-        """e1.e2 and bounding spheres (only closest points need them)."""
+    def _spheres(self, slot):
+        """Bounding spheres (centre: 3 arrays, radius) of slots: made for those asked if under a quarter
+        of the mesh (a 1M-vertex scan's clicks, its skin's distances), else for all once and kept."""
+        if self._near is None and len(slot) < self.m // 4:
+            return self._make_spheres(slot)
         if self._near is None:
-            a, e1, e2 = self.a, self.e1, self.e2
-            e12 = e1[0] * e2[0] + e1[1] * e2[1] + e1[2] * e2[2]
-            centre = tuple(ak + (b + c) / 3.0 for ak, b, c in zip(a, e1, e2))
-            # corners relative to the centre: a - g = -(e1 + e2)/3, b - g = e1 + (a - g), c - g = e2 + (a - g)
-            r2 = [sum(((b + c) / 3.0) ** 2 for b, c in zip(e1, e2))]
-            r2 += [sum((x - (b + c) / 3.0) ** 2 for x, b, c in zip(e, e1, e2)) for e in (e1, e2)]
-            radius = np.sqrt(np.maximum(np.maximum(r2[0], r2[1]), r2[2])) + self.pad
-            self._near = (e12, centre, radius)
-        return self._near
+            self._near = self._make_spheres(slice(None))
+        return tuple(x[slot] for x in self._near[0]), self._near[1][slot]
+
+    def _make_spheres(self, slot):
+        e1, e2 = [x[slot] for x in self.e1], [x[slot] for x in self.e2]
+        third = [(b + c) / 3.0 for b, c in zip(e1, e2)]       # centroid g - a; b - g = e1 - third, ...
+        centre = tuple(ak[slot] + t for ak, t in zip(self.a, third))
+        r2 = [sum(t ** 2 for t in third)] + [sum((x - t) ** 2 for x, t in zip(e, third)) for e in (e1, e2)]
+        return centre, np.sqrt(np.maximum(np.maximum(r2[0], r2[1]), r2[2])) + self.pad
 
     def vertex_tree(self):
         """A kd-tree of the vertices in use (the nearest one's distance bounds a point's), of all `verts` if
@@ -195,7 +198,7 @@ class TriangleBVH:
         px, py, pz = p[0][owner] - ax, p[1][owner] - ay, p[2][owner] - az     # p - a
         d1 = bx * px + by * py + bz * pz                                       # ab . ap
         d2 = cx * px + cy * py + cz * pz                                       # ac . ap
-        e11, e12, e22 = self.e11[slot], self._closest_data()[0][slot], self.e22[slot]
+        e11, e12, e22 = self.e11[slot], bx * cx + by * cy + bz * cz, self.e22[slot]
         d3, d4, d5, d6 = d1 - e11, d2 - e12, d1 - e12, d2 - e22               # ab.bp, ac.bp, ab.cp, ac.cp
         va, vb, vc = d3 * d6 - d5 * d4, d5 * d2 - d1 * d6, d1 * d4 - d3 * d2
         with np.errstate(divide="ignore", invalid="ignore"):
@@ -230,9 +233,8 @@ class TriangleBVH:
 
     def sphere_gap(self, p, owner, slot):
         """A lower bound of the distance from points p[owner] to slots: to their bounding spheres."""
-        _, centre, radius = self._closest_data()
-        cx, cy, cz = (x[slot] for x in centre)
-        return np.sqrt((p[0][owner] - cx) ** 2 + (p[1][owner] - cy) ** 2 + (p[2][owner] - cz) ** 2) - radius[slot]
+        (cx, cy, cz), radius = self._spheres(slot)
+        return np.sqrt((p[0][owner] - cx) ** 2 + (p[1][owner] - cy) ** 2 + (p[2][owner] - cz) ** 2) - radius
 
     # --- queries ----------------------------------------------------------------------------------
     def ray_nearest(self, o, d, lo, hi, shells=(4.0,)):
@@ -293,7 +295,6 @@ class TriangleBVH:
         return out_q, out_f, out_d
 
     def median_edge(self):
-        if not hasattr(self, "_edge"):
-            e1 = np.sqrt(self.e1[0] ** 2 + self.e1[1] ** 2 + self.e1[2] ** 2)
-            self._edge = float(np.median(e1)) if len(e1) else 0.0
+        if not hasattr(self, "_edge"):                                  # |e1|: the first edges' lengths
+            self._edge = float(np.median(np.sqrt(self.e11))) if self.m else 0.0
         return self._edge
