@@ -3,6 +3,7 @@
     ./ha bench adapt [--seeds 100-107] [--clicks 8,11] [--no-nricp] [--big] [--style legacy]
     ./ha bench adapt --real            # the real scans in ../shared/scans, clicks in headless_tests/data
     ./ha bench adapt --oracle          # what a perfect global map would reach (the floor), no method run
+    ./ha bench adapt --seeds 0-3 --identity 0 --targets 0   # heads whose truth is the template itself
 
 Seeds 100-107 are the REPORTING set (the default): figures quoted anywhere come from them. Seeds
 0-49 may be used for tuning (parameters, thresholds, ideas); never tune on 100-107, or the figures
@@ -168,7 +169,7 @@ def synthetic(args):
         print("note: mixing tuning seeds (0-49) with reporting seeds (100-107)")
     for seed in args.seeds:
         t0 = time.perf_counter()
-        head = testheads.make_head(seed, style=args.style)
+        head = testheads.make_head(seed, style=args.style, **_identity(args))
         made = time.perf_counter() - t0
         seen = face & head.true_on_scan
         query = spatial.MeshQuery(head.scan_verts, head.scan_tris, backend=testheads.BACKEND)
@@ -244,7 +245,7 @@ def oracle(args):
     print(f"{'seed':>4s} {'affine':>7s} {'tps':>7s} {'fdps':>4s} {'headadapt(11)':>14s}")
     rows = []
     for seed in args.seeds:
-        head = testheads.make_head(seed, style=args.style)
+        head = testheads.make_head(seed, style=args.style, **_identity(args))
         seen = face & head.true_on_scan
         query = spatial.MeshQuery(head.scan_verts, head.scan_tris, backend=testheads.BACKEND)
         V, T = tpl.skin.verts, head.true_template
@@ -278,6 +279,12 @@ def big():
           + ", ".join(f"{lv.level}:{lv.seconds:.2f}s" for lv in res.levels) + ")")
 
 
+def _identity(args):
+    """make_head's identity arguments asked for on the command line (--identity, --targets), if any."""
+    given = {"identity": getattr(args, "identity", None), "n_targets": getattr(args, "targets", None)}
+    return {k: v for k, v in given.items() if v is not None}
+
+
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--seeds", type=parse_seeds, default=list(REPORTING_SEEDS),
@@ -289,6 +296,11 @@ def main(argv=None):
     parser.add_argument("--big", action="store_true", help="also time a ~200k-vertex head")
     parser.add_argument("--oracle", action="store_true", help="the floor: maps that know the truth (no peers)")
     parser.add_argument("--no-nricp", action="store_true")
+    parser.add_argument("--identity", type=float, default=None,
+                        help="scale of the heads' identity morph (scan style; 0: the truth is the template itself)")
+    parser.add_argument("--targets", type=int, default=None,
+                        help="modifier targets per head (scan style; default 12-20 at random, 0: only race, "
+                             "gender, age and one body target)")
     args = parser.parse_args(argv)
     if args.big:
         big()
