@@ -7,7 +7,7 @@ import numpy as np
 
 from ..mesh import geometry, spatial
 from .fit import Fit, Pairs, spread
-from .scan import ScanSide, near_boundary
+from .scan import ScanSide
 
 
 def feature_mesh_pairs(fit: Fit, mesh: dict, reach: float) -> Pairs:
@@ -52,7 +52,7 @@ def curvature_pairs(fit: Fit, box: np.ndarray, count: int, reach: float, spacing
     paper's face box, `spacing` apart, matched to the current template by rays along the scan normal."""
     scan = fit.scan
     H, valid = scan.curvature(box)
-    cand = np.flatnonzero(valid & ~near_boundary(scan) & box)
+    cand = np.flatnonzero(valid & ~scan.boundary_verts & box)    # not by a border (paper sec 4.1)
     if not len(cand):
         return Pairs.empty()
     order = cand[np.argsort(-np.abs(H[cand]))]

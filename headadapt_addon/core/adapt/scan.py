@@ -155,9 +155,3 @@ class ScanSide:
             self._curv = curvature.mean_curvature(self.verts, tris, self.vertex_normals)
             self.seconds["curvature"] = time.perf_counter() - t0
         return self._curv
-
-
-def near_boundary(scan):
-    """Scan vertices on or next to a boundary (their curvature is not trusted, paper sec 4.1): the
-    corners of the triangles that touch it (ScanSide.boundary_verts)."""
-    return scan.boundary_verts
