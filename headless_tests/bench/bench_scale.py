@@ -19,6 +19,10 @@ and the ratio nricp / headadapt of the whole commands, and of nricp's own second
 --command SIZE adds the command-line comparison on a head of that size (default 30k: a scanner's
 typical mesh): the same two processes, --repeat times each, alternately, median ratio.
 --profile: cProfile of one in-process adaptation of the largest size: the top functions.
+--accuracy: what clustering a dense scan (AdaptOptions.scan_cell, mesh/simplify.py) costs in accuracy:
+each size adapted in this process as the command does and with clustering off (scan_cell 0), measured
+as bench adapt measures (mm of the true head on the seen face: correspondence, surface RMS against the
+whole scan, markers), the head's truth made again by tools/testheads.
 """
 import argparse
 import cProfile
@@ -191,6 +195,37 @@ def profile(scan, marks, top=25):
     pstats.Stats(prof).sort_stats("tottime").print_stats(top)
 
 
+def accuracy(heads):
+    """Per size: HeadAdapt's figures with the scan clustered (the default) and whole (scan_cell 0)."""
+    sys.path.insert(0, str(ROOT / "headless_tests" / "bench"))
+    import bench_adapt
+    from headadapt_addon.core.adapt import AdaptOptions, adapt
+    from headadapt_addon.core.mesh import spatial
+    from headadapt_addon.core.template import load_template
+    from tools import testheads
+
+    tpl = load_template()
+    face = testheads.face_mask(tpl)
+    print("\nclustering's cost in accuracy (mm of the true head, seen face; bench adapt's measures):")
+    print(f"{'verts':>9s} {'scan':>22s} {'corr':>6s} {'p95':>6s} {'surf':>6s} {'mk':>6s} {'adapt s':>7s} level")
+    for n, (scan, marks) in heads.items():
+        subdiv, ratio = next(r for limit, r in REMESH if n <= limit)
+        head = testheads.make_head(SEED, style="scan", subdiv=subdiv, decimate=ratio)
+        verts, tris = meshio.read_mesh(scan)[:2]
+        clicks = meshio.read_landmarks(marks)
+        query = spatial.MeshQuery(verts, tris)
+        seen = face & head.true_on_scan
+        for cell in (AdaptOptions().scan_cell, 0.0):
+            res = adapt(tpl, verts, tris, clicks, AdaptOptions(scan_cell=cell), markers=head.markers)
+            m = bench_adapt.measure(tpl, head, res.verts_scan, seen, query)
+            kept = res.calibration_info.get("scan_clustered")
+            what = f"clustered to {kept['kept']:,}" if kept else "whole"
+            print(f"{len(verts):9,d} {what:>22s} {m['corr_rms']:6.2f} {m['corr_p95']:6.2f} {m['surf_rms']:6.3f} "
+                  f"{m['marker_rms']:6.2f} {res.seconds:7.2f} {res.best_level}", flush=True)
+            if not kept:                # not dense: clustering off gives the same fit
+                break
+
+
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--sizes", default="50k,200k,1M", help="scan vertex counts, e.g. 50k,200k,1M")
@@ -199,6 +234,7 @@ def main(argv=None):
     parser.add_argument("--nricp-timeout", type=float, default=300.0, help="seconds before nricp is killed")
     parser.add_argument("--no-nricp", action="store_true", help="HeadAdapt only")
     parser.add_argument("--profile", action="store_true", help="cProfile one adaptation of the largest size")
+    parser.add_argument("--accuracy", action="store_true", help="clustered against whole scans, in this process")
     parser.add_argument("--make", type=int, help=argparse.SUPPRESS)      # the child that makes one head
     args = parser.parse_args(argv)
     if args.make:
@@ -208,6 +244,9 @@ def main(argv=None):
     heads = {n: scale_head(n) for n in sizes + ([parse_size(args.command)] if args.command else [])}
     if args.profile:
         profile(*heads[max(sizes)])
+        return
+    if args.accuracy:
+        accuracy({n: heads[n] for n in sizes})
         return
     work = pathlib.Path(tempfile.mkdtemp(prefix="headadapt-scale-"))
     print(f"\n{'verts':>9s} | {'headadapt: cmd s':>16s} {'adapt s':>7s} {'peak MB':>7s} | "
