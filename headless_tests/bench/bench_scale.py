@@ -199,6 +199,7 @@ def accuracy(heads):
     """Per size: HeadAdapt's figures with the scan clustered (the default) and whole (scan_cell 0)."""
     sys.path.insert(0, str(ROOT / "headless_tests" / "bench"))
     import bench_adapt
+
     from headadapt_addon.core.adapt import AdaptOptions, adapt
     from headadapt_addon.core.mesh import spatial
     from headadapt_addon.core.template import load_template

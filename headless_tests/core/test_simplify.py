@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from scipy.spatial import ConvexHull
 
-from headadapt_addon.core.adapt import adapt, fit  # noqa: F401
+from headadapt_addon.core.adapt import adapt, fit
 from headadapt_addon.core.adapt.options import AdaptOptions
 from headadapt_addon.core.mesh import geometry, simplify, spatial
 
