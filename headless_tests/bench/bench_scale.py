@@ -1,6 +1,7 @@
 """Benchmark: HeadAdapt against trimesh's nricp_amberg on scan-like heads of growing size, in one run.
 
-    ./ha bench scale [--sizes 50k,200k,1M] [--command 30k] [--nricp-timeout 300] [--repeat 1] [--profile]
+    ./ha bench scale [--sizes 50k,200k,1M] [--command 30k] [--nricp-timeout 300] [--repeat 3] [--profile]
+    ./ha bench scale --accuracy [--sizes ...]
 
 Heads: tools/testheads.make_head(7, style="scan") remeshed finer (Catmull-Clark levels, collapse
 decimation) and topped up to the exact vertex count by splitting the largest triangles at their
@@ -9,7 +10,8 @@ $HEADADAPT_CACHE (~/.cache/headadapt)/scale/. Each is written as a binary PLY wi
 
 Every run is its own process (python -m headadapt_addon.batch, or a child that runs nricp_amberg),
 timed from outside (wall seconds from process start to exit) with the peak resident memory the
-kernel reports for that process (wait4's ru_maxrss). Per size:
+kernel reports for that process (wait4's ru_maxrss). Per size (HeadAdapt run --repeat times, the
+run of median wall time shown and every run's time listed; nricp once):
   headadapt   the batch command: read the scan, adapt, write adapted_head.obj and report.json; its
               report's adapt seconds (adapt.adapt only) and stage seconds (where the time goes)
   nricp       read the scan, calibrate by the clicks (HeadAdapt's calibration), nricp_amberg from the
@@ -231,7 +233,7 @@ def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--sizes", default="50k,200k,1M", help="scan vertex counts, e.g. 50k,200k,1M")
     parser.add_argument("--command", default="30k", help="size of the command-line comparison ('' for none)")
-    parser.add_argument("--repeat", type=int, default=3, help="runs of each command in the command comparison")
+    parser.add_argument("--repeat", type=int, default=3, help="HeadAdapt's runs per size, and each command's in the command comparison")
     parser.add_argument("--nricp-timeout", type=float, default=300.0, help="seconds before nricp is killed")
     parser.add_argument("--no-nricp", action="store_true", help="HeadAdapt only")
     parser.add_argument("--profile", action="store_true", help="cProfile one adaptation of the largest size")
@@ -254,7 +256,9 @@ def main(argv=None):
           f"{'nricp: cmd s':>12s} {'fit s':>7s} {'peak MB':>7s} | {'ratio cmd':>9s} {'fit/adapt':>9s}")
     for n in sizes:
         scan, marks = heads[n]
-        h = headadapt_run(scan, marks, work / f"h{n}", timeout=1800)
+        runs = sorted((headadapt_run(scan, marks, work / f"h{n}", timeout=1800) for _ in range(max(args.repeat, 1))),
+                      key=lambda run: run["wall"])
+        h = runs[len(runs) // 2]
         nv = vertex_count(scan)
         if args.no_nricp:
             print(f"{nv:9,d} | {h['wall']:16.2f} {h['adapt']:7.2f} {h['peak']:7.0f} |", flush=True)
@@ -265,7 +269,8 @@ def main(argv=None):
                   f"{r['peak']:7.0f} | {fmt_ratio(r['wall'], h['wall'], r['killed']):>9s} "
                   f"{fmt_ratio(r['fit'] or r['wall'], h['adapt'], r['killed']):>9s}", flush=True)
         print(f"{'':9s}   where HeadAdapt's time goes (s): " + ", ".join(f"{k} {v:.2f}" for k, v in h["stages"].items())
-              + f"; process start to files written {h['wall']:.2f}", flush=True)
+              + f"; process start to files written {h['wall']:.2f} (its {len(runs)} runs: "
+              + ", ".join(f"{run['wall']:.2f}" for run in runs) + ")", flush=True)
         if r.get("killed") if not args.no_nricp else False:
             print(f"{'':9s}   nricp_amberg killed after {args.nricp_timeout:.0f} s (--nricp-timeout): the ratios are lower bounds")
     if args.command and not args.no_nricp:
