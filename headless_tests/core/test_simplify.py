@@ -5,7 +5,7 @@ from concurrent.futures import Future
 
 import numpy as np
 import pytest
-from scipy.spatial import ConvexHull
+from test_core_numerics import _sphere as sphere
 
 from headadapt_addon.core.adapt import adapt, fit
 from headadapt_addon.core.adapt.options import AdaptOptions
@@ -13,14 +13,8 @@ from headadapt_addon.core.mesh import geometry, simplify, spatial
 
 
 def _sphere(radius=0.1, n=20000):
-    """A closed sphere of n points, wound outward (a head-sized one by default, metres)."""
-    i = np.arange(n) + 0.5
-    phi, theta = np.arccos(1 - 2 * i / n), np.pi * (1 + 5 ** 0.5) * i
-    p = radius * np.c_[np.cos(theta) * np.sin(phi), np.sin(theta) * np.sin(phi), np.cos(phi)]
-    t = ConvexHull(p).simplices
-    flip = np.einsum("ij,ij->i", geometry.face_normals(p, t), p[t].mean(axis=1)) < 0
-    t[flip] = t[flip][:, ::-1]
-    return p, t
+    """A closed sphere of n points wound outward (head-sized by default, metres)."""
+    return sphere(radius, n)
 
 
 def test_odd_edges_are_the_border_of_a_manifold_mesh():
