@@ -291,6 +291,10 @@ def _adapt_and_write(record, verts, tris, points, markers, outputs, levels, cali
     for lv in result.levels:
         log(f"  level {lv.level}: {lv.method:5s} {lv.pairs:5d} pairs  E_d {lv.E_d:8.3f} mm^2  "
             f"RMS {lv.E_d_rms_mm:6.3f} mm  E {lv.E:8.3f}  {lv.seconds:6.2f} s")
+    clustered = result.calibration_info.get("scan_clustered")
+    if clustered:
+        log(f"  dense scan clustered to a {clustered['cell_mm']:g} mm grid for the fit: {clustered['vertices']:,} -> "
+            f"{clustered['kept']:,} vertices")
     if result.calibration_info.get("scan_pieces_turned"):
         log(f"  {result.calibration_info['scan_pieces_turned']} scan piece(s) faced inward: read turned round")
     if result.unfolded and result.unfolded["folded_triangles"]:

@@ -1,6 +1,7 @@
 """Benchmark: HeadAdapt against trimesh's nricp_amberg on scan-like heads of growing size, in one run.
 
-    ./ha bench scale [--sizes 50k,200k,1M] [--command 30k] [--nricp-timeout 300] [--repeat 1] [--profile]
+    ./ha bench scale [--sizes 50k,200k,1M] [--command 30k] [--nricp-timeout 300] [--repeat 3] [--profile]
+    ./ha bench scale --accuracy [--sizes ...]
 
 Heads: tools/testheads.make_head(7, style="scan") remeshed finer (Catmull-Clark levels, collapse
 decimation) and topped up to the exact vertex count by splitting the largest triangles at their
@@ -9,7 +10,8 @@ $HEADADAPT_CACHE (~/.cache/headadapt)/scale/. Each is written as a binary PLY wi
 
 Every run is its own process (python -m headadapt_addon.batch, or a child that runs nricp_amberg),
 timed from outside (wall seconds from process start to exit) with the peak resident memory the
-kernel reports for that process (wait4's ru_maxrss). Per size:
+kernel reports for that process (wait4's ru_maxrss). Per size (HeadAdapt run --repeat times, the
+run of median wall time shown and every run's time listed; nricp once):
   headadapt   the batch command: read the scan, adapt, write adapted_head.obj and report.json; its
               report's adapt seconds (adapt.adapt only) and stage seconds (where the time goes)
   nricp       read the scan, calibrate by the clicks (HeadAdapt's calibration), nricp_amberg from the
@@ -19,6 +21,10 @@ and the ratio nricp / headadapt of the whole commands, and of nricp's own second
 --command SIZE adds the command-line comparison on a head of that size (default 30k: a scanner's
 typical mesh): the same two processes, --repeat times each, alternately, median ratio.
 --profile: cProfile of one in-process adaptation of the largest size: the top functions.
+--accuracy: what clustering a dense scan (AdaptOptions.scan_cell, mesh/simplify.py) costs in accuracy:
+each size adapted in this process as the command does and with clustering off (scan_cell 0), measured
+as bench adapt measures (mm of the true head on the seen face: correspondence, surface RMS against the
+whole scan, markers), the head's truth made again by tools/testheads.
 """
 import argparse
 import cProfile
@@ -191,14 +197,47 @@ def profile(scan, marks, top=25):
     pstats.Stats(prof).sort_stats("tottime").print_stats(top)
 
 
+def accuracy(heads):
+    """Per size: HeadAdapt's figures with the scan clustered (the default) and whole (scan_cell 0)."""
+    sys.path.insert(0, str(ROOT / "headless_tests" / "bench"))
+    import bench_adapt
+
+    from headadapt_addon.core.adapt import AdaptOptions, adapt
+    from headadapt_addon.core.mesh import spatial
+    from headadapt_addon.core.template import load_template
+    from tools import testheads
+
+    tpl = load_template()
+    face = testheads.face_mask(tpl)
+    print("\nclustering's cost in accuracy (mm of the true head, seen face; bench adapt's measures):")
+    print(f"{'verts':>9s} {'scan':>22s} {'corr':>6s} {'p95':>6s} {'surf':>6s} {'mk':>6s} {'adapt s':>7s} level")
+    for n, (scan, marks) in heads.items():
+        subdiv, ratio = next(r for limit, r in REMESH if n <= limit)
+        head = testheads.make_head(SEED, style="scan", subdiv=subdiv, decimate=ratio)
+        verts, tris = meshio.read_mesh(scan)[:2]
+        clicks = meshio.read_landmarks(marks)
+        query = spatial.MeshQuery(verts, tris)
+        seen = face & head.true_on_scan
+        for cell in (AdaptOptions().scan_cell, 0.0):
+            res = adapt(tpl, verts, tris, clicks, AdaptOptions(scan_cell=cell), markers=head.markers)
+            m = bench_adapt.measure(tpl, head, res.verts_scan, seen, query)
+            kept = res.calibration_info.get("scan_clustered")
+            what = f"clustered to {kept['kept']:,}" if kept else "whole"
+            print(f"{len(verts):9,d} {what:>22s} {m['corr_rms']:6.2f} {m['corr_p95']:6.2f} {m['surf_rms']:6.3f} "
+                  f"{m['marker_rms']:6.2f} {res.seconds:7.2f} {res.best_level}", flush=True)
+            if not kept:                # not dense: clustering off gives the same fit
+                break
+
+
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--sizes", default="50k,200k,1M", help="scan vertex counts, e.g. 50k,200k,1M")
     parser.add_argument("--command", default="30k", help="size of the command-line comparison ('' for none)")
-    parser.add_argument("--repeat", type=int, default=3, help="runs of each command in the command comparison")
+    parser.add_argument("--repeat", type=int, default=3, help="HeadAdapt's runs per size, and each command's in the command comparison")
     parser.add_argument("--nricp-timeout", type=float, default=300.0, help="seconds before nricp is killed")
     parser.add_argument("--no-nricp", action="store_true", help="HeadAdapt only")
     parser.add_argument("--profile", action="store_true", help="cProfile one adaptation of the largest size")
+    parser.add_argument("--accuracy", action="store_true", help="clustered against whole scans, in this process")
     parser.add_argument("--make", type=int, help=argparse.SUPPRESS)      # the child that makes one head
     args = parser.parse_args(argv)
     if args.make:
@@ -209,12 +248,17 @@ def main(argv=None):
     if args.profile:
         profile(*heads[max(sizes)])
         return
+    if args.accuracy:
+        accuracy({n: heads[n] for n in sizes})
+        return
     work = pathlib.Path(tempfile.mkdtemp(prefix="headadapt-scale-"))
     print(f"\n{'verts':>9s} | {'headadapt: cmd s':>16s} {'adapt s':>7s} {'peak MB':>7s} | "
           f"{'nricp: cmd s':>12s} {'fit s':>7s} {'peak MB':>7s} | {'ratio cmd':>9s} {'fit/adapt':>9s}")
     for n in sizes:
         scan, marks = heads[n]
-        h = headadapt_run(scan, marks, work / f"h{n}", timeout=1800)
+        runs = sorted((headadapt_run(scan, marks, work / f"h{n}", timeout=1800) for _ in range(max(args.repeat, 1))),
+                      key=lambda run: run["wall"])
+        h = runs[len(runs) // 2]
         nv = vertex_count(scan)
         if args.no_nricp:
             print(f"{nv:9,d} | {h['wall']:16.2f} {h['adapt']:7.2f} {h['peak']:7.0f} |", flush=True)
@@ -225,7 +269,8 @@ def main(argv=None):
                   f"{r['peak']:7.0f} | {fmt_ratio(r['wall'], h['wall'], r['killed']):>9s} "
                   f"{fmt_ratio(r['fit'] or r['wall'], h['adapt'], r['killed']):>9s}", flush=True)
         print(f"{'':9s}   where HeadAdapt's time goes (s): " + ", ".join(f"{k} {v:.2f}" for k, v in h["stages"].items())
-              + f"; process start to files written {h['wall']:.2f}", flush=True)
+              + f"; process start to files written {h['wall']:.2f} (its {len(runs)} runs: "
+              + ", ".join(f"{run['wall']:.2f}" for run in runs) + ")", flush=True)
         if r.get("killed") if not args.no_nricp else False:
             print(f"{'':9s}   nricp_amberg killed after {args.nricp_timeout:.0f} s (--nricp-timeout): the ratios are lower bounds")
     if args.command and not args.no_nricp:

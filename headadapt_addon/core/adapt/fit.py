@@ -4,11 +4,13 @@ options, the level functions so far); the calibrated scan with its queries (Scan
 from __future__ import annotations
 
 import dataclasses
+from concurrent.futures import Future
 
 import numpy as np
 from scipy import sparse
 from scipy.spatial import cKDTree
 
+from .. import threads
 from ..mesh import geometry
 from . import metrics, rbf
 
@@ -122,10 +124,48 @@ class Fit:
 def template_side(tpl, key, make):
     """Data of the fit that depends on the template (and the options in `key`) alone, made by make()
     once per template in a process and kept in tpl.derived: a batch of heads, the benchmark or the
-    panel's next Adapt skip it (0.37 s of a 2.2 s adaptation of a 31k-vertex scan)."""
+    panel's next Adapt skip it (0.37 s of a 2.2 s adaptation of a 31k-vertex scan). Begun by
+    prefetch, it is waited for (made here if that failed)."""
     if key not in tpl.derived:
         tpl.derived[key] = make()
-    return tpl.derived[key]
+    value = tpl.derived[key]
+    if isinstance(value, Future):
+        value = tpl.derived[key] = value.result() if value.exception() is None else make()
+    return value
+
+
+def level_sigma(options, k):
+    """The CSRBF support of level k (sec 3.3): support_factor x the level's centre spacing, which
+    halves per level down to min_sample_spacing (or options.support if fixed), m."""
+    o = options
+    return o.support or o.support_factor * max(o.sample_spacing / 2 ** (k - 1), o.min_sample_spacing)
+
+
+def prefetch(tpl, options):
+    """Begin, on a worker thread, what template_side keeps for a fit with these options (Fit's skin
+    side, every level's basis) and has not made yet: a process's first adaptation (a batch command)
+    makes it, 0.19 s, while this thread calibrates and clusters the scan."""
+    skin_key = ("fit", options.seam_band)
+    jobs = {skin_key: lambda: _skin_side(tpl, options.seam_band)}
+    for k in range(1, options.max_levels + 1):
+        sigma = level_sigma(options, k)
+        jobs[("basis", sigma, options.centre_density)] = lambda s=sigma: _level_basis(
+            tpl.skin.verts, template_side(tpl, skin_key, None)[4], s, options.centre_density)
+    jobs = {key: make for key, make in jobs.items() if key not in tpl.derived}
+    if not jobs:
+        return
+    futures = {key: Future() for key in jobs}
+    tpl.derived.update(futures)
+
+    def run():                  # in order: the bases read the skin side's Laplacian
+        for key, make in jobs.items():
+            futures[key].set_running_or_notify_cancel()
+            try:
+                futures[key].set_result(make())
+            except BaseException as exc:      # template_side then makes it on the caller's thread
+                futures[key].set_exception(exc)
+
+    threads.pool().submit(run)
 
 
 def _skin_side(tpl, seam_band):

@@ -11,7 +11,7 @@ from scipy.spatial import cKDTree
 from .. import threads
 from ..tol import TINY
 from . import rbf
-from .fit import Fit, Pairs
+from .fit import Fit, Pairs, level_sigma
 from .pairs import surface_pairs
 
 
@@ -54,7 +54,7 @@ def fit_level(fit: Fit, clicks: Pairs, k: int, fixed: Pairs | None = None,
     (csrbf_level); then refits without the pairs around any triangle it folded. Returns (the last
     round's pairs, sigma)."""
     o = fit.options
-    sigma = o.support or o.support_factor * max(o.sample_spacing / 2 ** (k - 1), o.min_sample_spacing)
+    sigma = level_sigma(o, k)
     stiffness = max(o.stiffness * o.stiffness_decay ** (k - 1), o.min_stiffness)
     fixed = Pairs.empty() if fixed is None else fixed
     far = cKDTree(fit.V[fit.seam]).query(fixed.p, distance_upper_bound=o.seam_band)[0] == np.inf

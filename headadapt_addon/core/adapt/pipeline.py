@@ -17,12 +17,12 @@ import numpy as np
 
 from .. import mpeg4
 from ..exceptions import LandmarkError
-from ..mesh import geometry
+from ..mesh import geometry, simplify
 from ..template import Template
 from ..tol import MM, TINY
 from . import calibration, metrics
 from .clicks import check_clicks, closed_mouth, handedness_notes
-from .fit import Fit, Pairs
+from .fit import Fit, Pairs, prefetch
 from .level0 import feature_mesh, level_zero
 from .levels import fit_level
 from .options import FACE_REGIONS, SCANNER_VISIBLE_PARTS, AdaptOptions, AdaptResult, Level
@@ -130,6 +130,7 @@ def calibrate(tpl: Template, scan_verts: np.ndarray, scan_tris: np.ndarray, scan
     """Step 1 (sec 3.1): the scan and its clicks in the template frame. Returns (the Fit to come, the
     template's FDPs the scanner can see, the clicks in the template frame, the similarity scan ->
     template, the calibration's report)."""
+    prefetch(tpl, options)                  # the template's side of the fit, on a worker meanwhile
     scan_verts = np.asarray(scan_verts, dtype=np.float64)
     scan_tris = np.asarray(scan_tris)
     geometry.check_mesh(scan_verts, scan_tris, "scan")
@@ -140,6 +141,14 @@ def calibrate(tpl: Template, scan_verts: np.ndarray, scan_tris: np.ndarray, scan
     given, handed = calibration.check_handedness(given, tpl_fdps)
     sim, info = calibration.calibrate(given, tpl_fdps, method=options.calibration)
     sv = sim.apply(scan_verts)
+    # a dense scan is clustered once to the detail the fit can use (mesh/simplify.py)
+    cell = options.scan_cell
+    dense = bool(cell) and simplify.median_edge(sv, scan_tris) < cell
+    border = None
+    if dense:
+        before = len(sv)
+        sv, scan_tris, border = simplify.cluster(sv, scan_tris, cell)     # border: the scan's own
+        info = {**info, "scan_clustered": {"cell_mm": cell * MM, "vertices": before, "kept": len(sv)}}
     q_fdp = {k: sim.apply(v) for k, v in given.items()}
     # the scan's spatial tree, begun on a worker thread before the winding check below: kept unless it
     # turns a piece (a turned triangle's corners come in another order, and so its rounding)
@@ -156,7 +165,7 @@ def calibrate(tpl: Template, scan_verts: np.ndarray, scan_tris: np.ndarray, scan
     scan_tris = turned
     notes = handedness_notes(handed, flipped)
     info = {**info, "scan_pieces_turned": flipped, "handedness": {**handed, "notes": notes}, "unused_fdps": unused}
-    scan = ScanSide(sv, scan_tris, options, fc, sums, early)
+    scan = ScanSide(sv, scan_tris, options, fc, sums, early, border)
     threshold = float(np.ptp(tpl.skin.verts[:, 0])) / 10.0     # the paper's width / 10
     return Fit(tpl, scan, options, threshold), tpl_fdps, q_fdp, sim, info
 

@@ -64,10 +64,11 @@ class FaceNormals:
 class ScanSide:
     """The calibrated scan with its queries, normals, boundary and curvature (computed once)."""
 
-    def __init__(self, verts, tris, options, fc=None, sums=None, spatial=None):
+    def __init__(self, verts, tris, options, fc=None, sums=None, spatial=None, border=None):
         """fc, sums: the triangles' geometry.face_cross and vertex_sums if the caller has them (calibrate
         does: the winding check needs them too); the normals come from them, computed once. spatial:
-        start_spatial(verts, tris, options) if the caller began it (on these very triangles)."""
+        start_spatial(verts, tris, options) if the caller began it (on these very triangles). border: the
+        border's edges (e,2) if not the edges one triangle uses (a clustered scan's: its original's)."""
         t0 = time.perf_counter()
         self.verts, self.tris = verts, tris
         self.seconds = {"build": 0.0, "curvature": 0.0}        # the stages' report: this thread's seconds
@@ -76,7 +77,7 @@ class ScanSide:
         self.face_normals = FaceNormals(fc)
         self.vertex_normals = geometry.vertex_normals(verts, tris, geometry.vertex_sums(tris, fc, len(verts))
                                                       if sums is None else sums)
-        self.border_edges = geometry.boundary_edges(tris)          # found once: faces, vertices, on_border
+        self.border_edges = geometry.boundary_edges(tris) if border is None else border   # found once: faces, vertices, on_border
         on = np.zeros(len(verts), bool)
         on[self.border_edges.ravel()] = True
         self.boundary_faces = on[tris].any(axis=1)                  # as geometry.boundary_faces

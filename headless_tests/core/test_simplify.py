@@ -1,0 +1,110 @@
+"""A dense scan clustered once (core/mesh/simplify.py) before it is fitted, and the template's side of
+the fit begun on a worker (adapt/fit.py prefetch)."""
+
+from concurrent.futures import Future
+
+import numpy as np
+import pytest
+from test_core_numerics import _sphere as sphere
+
+from headadapt_addon.core.adapt import adapt, fit
+from headadapt_addon.core.adapt.options import AdaptOptions
+from headadapt_addon.core.mesh import geometry, simplify, spatial
+
+
+def _sphere(radius=0.1, n=20000):
+    """A closed sphere of n points wound outward (head-sized by default, metres)."""
+    return sphere(radius, n)
+
+
+def test_odd_edges_are_the_border_of_a_manifold_mesh():
+    p, t = _sphere()
+    assert len(simplify.odd_edges(t)) == 0
+    cut = t[p[t].mean(axis=1)[:, 2] < 0.07]
+    assert np.array_equal(simplify.odd_edges(cut), geometry.boundary_edges(cut))
+
+
+def test_clustering_keeps_the_surface_the_winding_and_the_border():
+    radius = 0.1
+    p, t = _sphere(radius)
+    t = t[p[t].mean(axis=1)[:, 2] < 0.07]                   # a hole: its border is a circle at z = 0.07
+    edge = simplify.median_edge(p, t)
+    cell = 3 * edge
+    v, tris, border = simplify.cluster(p, t, cell)
+    assert len(v) < len(p) / 5
+    # the clusters' means lie on the sphere, a little inside (about cell^2 / (8 r))
+    assert np.abs(np.linalg.norm(v, axis=1) - radius).max() < cell ** 2 / radius
+    # each triangle once, none degenerate, wound outward but for a few slivers clustering folds over
+    # (0.7% of them, 0.2% of the area)
+    s = np.sort(tris, axis=1)
+    assert len(np.unique(s, axis=0)) == len(tris)
+    assert ((s[:, 0] != s[:, 1]) & (s[:, 1] != s[:, 2])).all()
+    fc = geometry.face_cross(v, tris)
+    out = np.einsum("ij,ij->i", fc, v[tris].mean(axis=1)) > 0
+    area = np.linalg.norm(fc, axis=1)
+    assert out.mean() > 0.98 and area[out].sum() > 0.995 * area.sum()
+    # the border is the hole's, carried over; the triangles alone would show edges used once inside
+    # the surface too, where clustering collapsed a fan
+    on = np.unique(border)
+    assert len(on) > 20 and np.abs(v[on, 2] - 0.07).max() < 2 * cell
+    naive = np.unique(geometry.boundary_edges(tris))
+    assert np.abs(v[naive, 2] - 0.07).max() > 5 * cell
+    # the hole keeps its size: the border's points ring round it at the cut's radius
+    ring = np.hypot(v[on, 0], v[on, 1])
+    assert abs(np.median(ring) - np.sqrt(radius ** 2 - 0.07 ** 2)) < cell
+
+
+def test_clustering_ignores_unused_vertices():
+    p, t = _sphere()
+    cell = 3 * simplify.median_edge(p, t)
+    v, tris, border = simplify.cluster(p, t, cell)
+    extra = np.vstack([[[5.0, 5.0, 5.0]], p, [[-5.0, 0.0, 0.0]]])
+    v2, tris2, border2 = simplify.cluster(extra, t + 1, cell)
+    assert np.array_equal(v, v2) and np.array_equal(tris, tris2) and np.array_equal(border, border2)
+
+
+@pytest.mark.slow
+def test_a_dense_scan_is_clustered_and_fits_as_well(tpl, testheads):
+    """A scan-like head remeshed finer (196k vertices, 0.96 mm median edge in the template frame) is
+    clustered to the 1 mm grid of AdaptOptions.scan_cell, and its fit is as close to the scan (all of
+    it, not the clusters), to the truth and to the markers as the fit of the whole scan."""
+    head = testheads.make_head(3, style="scan", subdiv=3, decimate=0.95)
+    clicks = {k: head.fdp_clicks[k] for k in ("3.7", "3.8", "3.11", "3.12", "8.3", "8.4", "9.3", "2.10")}
+    seen = testheads.face_mask(tpl) & head.true_on_scan
+    query = spatial.MeshQuery(head.scan_verts, head.scan_tris)
+    figures = {}
+    for cell in (0.001, 0.0):
+        res = adapt(tpl, head.scan_verts, head.scan_tris, clicks, AdaptOptions(scan_cell=cell),
+                          markers=head.markers)
+        s = head.similarity[0] / 1000                         # scan units per mm of the true head
+        surf = query.closest_points(res.verts_scan[seen])[2] / s
+        corr = np.linalg.norm(res.verts_scan[seen] - head.true_template[seen], axis=1) / s
+        figures[cell] = (np.sqrt(np.mean(surf ** 2)), np.sqrt(np.mean(corr ** 2)), res)
+    clustered, whole = figures[0.001], figures[0.0]
+    info = clustered[2].calibration_info["scan_clustered"]
+    assert info["vertices"] == len(head.scan_verts) and info["kept"] < 0.7 * info["vertices"]
+    assert "scan_clustered" not in whole[2].calibration_info
+    assert clustered[0] < whole[0] * 1.05 + 0.01, (clustered[0], whole[0])      # surface, mm
+    assert clustered[1] < whole[1] * 1.02, (clustered[1], whole[1])             # correspondence, mm
+    assert clustered[2].outcome["ok"]
+
+
+def test_the_template_side_begun_on_a_worker_is_the_one_made_here():
+    from headadapt_addon.core.template import load_template
+
+    options = AdaptOptions()
+    ahead, here = load_template(), load_template()
+    fit.prefetch(ahead, options)
+    assert any(isinstance(v, Future) for v in ahead.derived.values())
+    for k in range(1, options.max_levels + 1):
+        sigma = fit.level_sigma(options, k)
+        key = ("basis", sigma, options.centre_density)
+        got = fit.template_side(ahead, key, None)             # waits for the worker's
+        side = fit.template_side(here, ("fit", options.seam_band), lambda: fit._skin_side(here, options.seam_band))
+        made = fit._level_basis(here.skin.verts, side[4], sigma, options.centre_density)
+        assert np.array_equal(got[0], made[0]) and (got[4] != made[4]).nnz == 0
+    # one that failed on the worker is made on the caller's thread
+    failed = Future()
+    failed.set_exception(MemoryError())
+    here.derived["x"] = failed
+    assert fit.template_side(here, "x", lambda: 42) == 42 and here.derived["x"] == 42
