@@ -487,6 +487,10 @@ class AdaptRun(Run):
         turned = result.calibration_info.get("scan_pieces_turned", 0)
         if turned:
             msg += f"; {turned} scan piece(s) faced inward and were read turned round"
+        clustered = result.calibration_info.get("scan_clustered")
+        if clustered:
+            msg += (f"; the dense scan was fitted on its {clustered['kept']:,} clusters "
+                    f"({clustered['cell_mm']:g} mm grid)")
         warnings = outcome_text.warning_lines(result.outcome, result.flagged, result.dropped)
         if warnings:        # not ok (folds left, far from the scan) or flagged FDPs: say why (Report panel too)
             report({"WARNING"}, msg + "; " + "; ".join(warnings))
