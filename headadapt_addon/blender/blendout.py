@@ -176,20 +176,28 @@ def write_blend(path, tpl, result, scan_verts, scan_tris, landmarks, report, bak
 PREVIEW_VIEW_PX = 640           # each view of --preview is this many pixels square; front and side beside
 
 
-def _aim(cam, root, direction, distance=2.2):
-    """Point cam at the head's bounding box (the root's meshes, world) from `direction` (root frame)."""
+def _aim(cam, root, direction, margin=1.15):
+    """Point cam at the head's bounding box (the root's meshes and the legend's text, world) from
+    `direction` (root frame), as near as it can while the box's corners stay in a square picture
+    (margin: the box's half width or height across the view times this, whichever is larger)."""
+    import math
+
     import mathutils
-    pts = [o.matrix_world @ mathutils.Vector(c) for o in root.children_recursive if o.type == "MESH"
+    pts = [o.matrix_world @ mathutils.Vector(c) for o in root.children_recursive if o.type in ("MESH", "FONT")
            for c in o.bound_box]
     lo = mathutils.Vector([min(p[i] for p in pts) for i in range(3)])
     hi = mathutils.Vector([max(p[i] for p in pts) for i in range(3)])
     centre, size = (lo + hi) / 2, max((hi - lo).length, 1e-6)
     way = (root.matrix_world.to_3x3() @ mathutils.Vector(direction)).normalized()
     up = (root.matrix_world.to_3x3() @ mathutils.Vector((0.0, 0.0, 1.0))).normalized()
-    cam.location = centre + way * distance * size
     x = up.cross(way).normalized()                    # the camera looks down its -Z, its +Y up
-    cam.rotation_euler = mathutils.Matrix((x, way.cross(x), way)).transposed().to_euler()
-    cam.data.clip_start, cam.data.clip_end = size / 100, 10 * size
+    y = way.cross(x)
+    across = max(max(abs((p - centre).dot(x)), abs((p - centre).dot(y))) for p in pts)
+    deep = max((p - centre).dot(way) for p in pts)
+    half_angle = math.atan(cam.data.sensor_width / 2 / cam.data.lens)
+    cam.location = centre + way * (deep + margin * across / math.tan(half_angle))
+    cam.rotation_euler = mathutils.Matrix((x, y, way)).transposed().to_euler()
+    cam.data.clip_start, cam.data.clip_end = size / 100, 10 * size + (cam.location - centre).length
     return cam
 
 
@@ -204,7 +212,7 @@ def render_preview(path, root, scan_obj=None, px=PREVIEW_VIEW_PX):
         cam = bpy.data.objects.new(f"HeadAdapt preview {name}", bpy.data.cameras.new(f"HeadAdapt preview {name}"))
         sc.collection.objects.link(cam)
         cam.data.lens = 85.0
-        cams.append(_aim(cam, root, direction, distance=1.7))
+        cams.append(_aim(cam, root, direction))
     bpy.context.view_layer.update()
     before = (sc.camera, sc.render.engine, sc.render.resolution_x, sc.render.resolution_y,
               sc.render.resolution_percentage, sc.render.filepath)

@@ -593,6 +593,39 @@ def test_batch_preview_renders_front_and_side_with_the_heat_map(tmp_path):
     assert bad.returncode == 2 and bad.stderr.strip().count("\n") == 0 and "name a .png file" in bad.stderr
 
 
+def test_the_preview_camera_frames_the_legend_s_text(clean_scene):
+    """The preview's cameras frame the head's meshes and the heat legend's text labels (text objects):
+    framed by the meshes alone, the labels beside a long, narrow head fell out of the picture (the
+    1M bench head's preview lost the legend's left half)."""
+    import bpy
+    from bpy_extras.object_utils import world_to_camera_view
+    from mathutils import Vector
+
+    from headadapt_addon.blender import blendout, bridge
+
+    root = bpy.data.objects.new("root", None)
+    head = bpy.data.objects.new("head", bridge.new_mesh("head", np.array(       # a head's box, metres
+        [(-0.08, -0.1, 0.0), (0.08, -0.1, 0.0), (0.08, 0.1, 0.3), (-0.08, 0.1, 0.3)]), np.array([(0, 1, 2, 3)])))
+    label = bpy.data.objects.new("label", bpy.data.curves.new("label", "FONT"))     # as add_heat_legend's
+    label.data.body, label.data.size, label.data.align_x = "1.5 mm", 0.009, "RIGHT"
+    label.location = (-0.13, 0.0, 0.28)
+    label.rotation_euler = (np.pi / 2, 0.0, 0.0)
+    for obj in (root, head, label):
+        clean_scene.collection.objects.link(obj)
+    head.parent = label.parent = root
+    bpy.context.view_layer.update()
+    cam = bpy.data.objects.new("cam", bpy.data.cameras.new("cam"))
+    clean_scene.collection.objects.link(cam)
+    cam.data.lens = 85.0
+    clean_scene.render.resolution_x = clean_scene.render.resolution_y = 640       # as render_preview's views
+    blendout._aim(cam, root, (0.0, -1.0, 0.0))
+    bpy.context.view_layer.update()
+    for obj in (head, label):
+        for corner in obj.bound_box:
+            u, v, depth = world_to_camera_view(clean_scene, cam, obj.matrix_world @ Vector(corner))
+            assert 0.0 <= u <= 1.0 and 0.0 <= v <= 1.0 and depth > 0, (obj.name, u, v)
+
+
 def _view_region(ui_scene):
     return next(r for r in ui_scene["area"].regions if r.type == "WINDOW")
 
