@@ -4,9 +4,11 @@ The template's finest level places its centres 2 mm apart; a scanner's 1M-vertex
 every 0.3-0.5 mm. Clustering its vertices on a cubic grid (each cell's vertices merged into their
 mean, the triangles kept that still have three corners, each once) gives a mesh with the same surface
 up to the cell's noise-averaging (the mean of a cell's points lies off a surface of curvature radius R
-by about cell^2 / (8 R): 0.01 mm for a 1 mm cell on a 10 mm lip) at a fraction of the vertices, so
-that the scan's preparation (normals, border, curvature, spatial tree) costs what a 100k-vertex scan
-costs. Orientation is kept (a kept triangle keeps its corners' order).
+by about cell^2 / (8 R): 0.01 mm for a 1 mm cell on a 10 mm lip) at a fraction of the vertices (the
+1M bench head: 252k clusters at 1 mm), so that the scan's preparation (normals, border, curvature,
+spatial tree) and its queries cost what such a scan costs. A kept triangle keeps its corners' order;
+a few slivers fold over where a cell's mean lands past its neighbours' (0.7% of the triangles, 0.2%
+of the area of a clustered sphere).
 """
 
 from __future__ import annotations
@@ -19,7 +21,8 @@ BITS = 21           # grid coordinates per axis in one int64 key (a 0.3 m head a
 
 
 def median_edge(verts, tris, sample=20000):
-    """The median length of the triangles' first edges, from an even sample of at most `sample` triangles."""
+    """The median length of the triangles' first edges, from every k-th triangle (k = len // sample: from
+    `sample` to twice as many triangles, or all of them)."""
     if not len(tris):
         return 0.0
     t = tris[:: max(1, len(tris) // sample)]
