@@ -69,8 +69,10 @@ class AdaptOptions:
                                         # tangent planes (off by under 0.05 mm there), not closest points, m
                                         # (3 mm adapted 2-3 mm heads in two thirds the time, as accurately, but
                                         # left a lid vertex of the CT 0.7 mm inside its transferred skull)
-    scan_cell: float = 0.001            # a scan whose median edge is under half this is clustered to a grid of
-                                        # it first (mesh/simplify.py), m; 0: never
+    scan_cell: float = 0.001            # a scan whose median edge is under this is clustered to a grid of it
+                                        # first (mesh/simplify.py), m; 0: never. Half the finest centre spacing:
+                                        # the 1M bench head (0.77 mm edges) keeps 252k clusters and fits as
+                                        # closely in half the time (./ha bench scale --accuracy)
     jacobi_steps: int = 250             # a level's solve factorises (sparse LU) after this many diagonal-
                                         # preconditioned CG steps (face-only scans need ~800)
     lu_steps: int = 30                  # ... and refactorises when CG preconditioned by that LU takes more
