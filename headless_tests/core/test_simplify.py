@@ -19,9 +19,9 @@ def _sphere(radius=0.1, n=20000):
 
 def test_odd_edges_are_the_border_of_a_manifold_mesh():
     p, t = _sphere()
-    assert len(simplify.odd_edges(t)) == 0
+    assert len(geometry.odd_edges(t)) == 0
     cut = t[p[t].mean(axis=1)[:, 2] < 0.07]
-    assert np.array_equal(simplify.odd_edges(cut), geometry.boundary_edges(cut))
+    assert np.array_equal(geometry.odd_edges(cut), geometry.boundary_edges(cut))
 
 
 def test_clustering_keeps_the_surface_the_winding_and_the_border():

@@ -58,7 +58,7 @@ class Fit:
         self.vert_w = tpl.region_weights[tpl.region]
         self.face_w = face_weights(tpl)
         # what depends on the template alone is made once per template in a process (template_side)
-        side = template_side(tpl, ("fit", options.seam_band), lambda: _skin_side(tpl, options.seam_band))
+        side = template_side(tpl, *_skin_entry(tpl, options))
         self.seam, self.near_seam, self.folds, self.ring, self.laplacian = side
         self.functions = []
         self.level0_memo = None     # (the clicks' bytes, level 0's map) of the last level-0 fit
@@ -90,9 +90,7 @@ class Fit:
         """(centres, their kd-tree, the umbrella Laplacian of their Wendland functions on the skin,
         its Gram matrix, the functions at the skin's vertices) of a level with support sigma, made once
         per template and support."""
-        density = self.options.centre_density
-        return template_side(self.tpl, ("basis", sigma, density), lambda: _level_basis(self.V, self.laplacian, sigma,
-                                                                                       density))
+        return template_side(self.tpl, *_basis_entry(self.tpl, self.options, sigma))
 
     def reach(self, k):
         """How far a closest-point pair may reach at level k (halving per level), m."""
@@ -145,12 +143,8 @@ def prefetch(tpl, options):
     """Begin, on a worker thread, what template_side keeps for a fit with these options (Fit's skin
     side, every level's basis) and has not made yet: a process's first adaptation (a batch command)
     makes it, 0.19 s, while this thread calibrates and clusters the scan."""
-    skin_key = ("fit", options.seam_band)
-    jobs = {skin_key: lambda: _skin_side(tpl, options.seam_band)}
-    for k in range(1, options.max_levels + 1):
-        sigma = level_sigma(options, k)
-        jobs[("basis", sigma, options.centre_density)] = lambda s=sigma: _level_basis(
-            tpl.skin.verts, template_side(tpl, skin_key, None)[4], s, options.centre_density)
+    jobs = dict([_skin_entry(tpl, options)] + [_basis_entry(tpl, options, level_sigma(options, k))
+                                                for k in range(1, options.max_levels + 1)])
     jobs = {key: make for key, make in jobs.items() if key not in tpl.derived}
     if not jobs:
         return
@@ -166,6 +160,18 @@ def prefetch(tpl, options):
                 futures[key].set_exception(exc)
 
     threads.pool().submit(run)
+
+
+def _skin_entry(tpl, options):
+    """(template_side's key, its make) of Fit's skin side."""
+    return ("fit", options.seam_band), lambda: _skin_side(tpl, options.seam_band)
+
+
+def _basis_entry(tpl, options, sigma):
+    """(template_side's key, its make) of the level basis of support sigma (on the skin side's Laplacian)."""
+    density = options.centre_density
+    return ("basis", sigma, density), lambda: _level_basis(
+        tpl.skin.verts, template_side(tpl, *_skin_entry(tpl, options))[4], sigma, density)
 
 
 def _skin_side(tpl, seam_band):

@@ -142,10 +142,8 @@ def calibrate(tpl: Template, scan_verts: np.ndarray, scan_tris: np.ndarray, scan
     sim, info = calibration.calibrate(given, tpl_fdps, method=options.calibration)
     sv = sim.apply(scan_verts)
     # a dense scan is clustered once to the detail the fit can use (mesh/simplify.py)
-    cell = options.scan_cell
-    dense = bool(cell) and simplify.median_edge(sv, scan_tris) < cell
-    border = None
-    if dense:
+    cell, border = options.scan_cell, None
+    if cell and simplify.median_edge(sv, scan_tris) < cell:
         before = len(sv)
         sv, scan_tris, border = simplify.cluster(sv, scan_tris, cell)     # border: the scan's own
         info = {**info, "scan_clustered": {"cell_mm": cell * MM, "vertices": before, "kept": len(sv)}}

@@ -54,20 +54,38 @@ def vertex_normals(v, t, sums=None):
     return np.divide(vn, length, out=np.zeros_like(vn), where=length > 0)
 
 
+def _edge_keys(t):
+    """(the sorted int64 key of every triangle's edges 01, 12, 20, n): key = lo * n + hi of its vertices."""
+    t = np.asarray(t, dtype=np.int64)
+    a, b = t.T.ravel(), t[:, [1, 2, 0]].T.ravel()
+    n = int(t.max()) + 1
+    key = np.minimum(a, b) * n + np.maximum(a, b)
+    key.sort()
+    return key, n
+
+
 def boundary_edges(t):
     """Edges (e,2) used by exactly one triangle (sorted vertex pairs, in order). One int64 key per
     edge, sorted; a key unlike both its neighbours is used once (a 2M-triangle scan: no row sorts
     nor np.unique's counts, 3x faster)."""
-    t = np.asarray(t, dtype=np.int64)
     if not len(t):
         return np.zeros((0, 2), np.int64)
-    a, b = t.T.ravel(), t[:, [1, 2, 0]].T.ravel()       # the edges 01, 12, 20 of every triangle
-    n = int(t.max()) + 1
-    key = np.minimum(a, b) * n + np.maximum(a, b)
-    key.sort()
+    key, n = _edge_keys(t)
     differ = key[1:] != key[:-1]
     single = key[np.r_[True, differ] & np.r_[differ, True]]
     return np.c_[single // n, single % n]
+
+
+def odd_edges(t):
+    """Edges (e,2) that an odd number of the triangles use (sorted vertex pairs, in order): on a
+    manifold mesh, boundary_edges; carried through a vertex clustering, the original's border
+    (mesh/simplify.py)."""
+    if not len(t):
+        return np.zeros((0, 2), np.int64)
+    key, n = _edge_keys(t)
+    start = np.flatnonzero(np.r_[True, key[1:] != key[:-1]])
+    odd = key[start[np.diff(np.r_[start, len(key)]) % 2 == 1]]
+    return np.c_[odd // n, odd % n]
 
 
 def boundary_vertices(t, n):
