@@ -142,12 +142,13 @@ def level_sigma(options, k):
 def prefetch(tpl, options):
     """Begin, on a worker thread, what template_side keeps for a fit with these options (Fit's skin
     side, every level's basis) and has not made yet: a process's first adaptation (a batch command)
-    makes it, 0.19 s, while this thread calibrates and clusters the scan."""
+    makes it, 0.19 s, while this thread calibrates and clusters the scan. Returns the worker's future
+    (None if all was made): the caller waits for it before it leaves (pipeline.adapt)."""
     jobs = dict([_skin_entry(tpl, options)] + [_basis_entry(tpl, options, level_sigma(options, k))
                                                 for k in range(1, options.max_levels + 1)])
     jobs = {key: make for key, make in jobs.items() if key not in tpl.derived}
     if not jobs:
-        return
+        return None
     futures = {key: Future() for key in jobs}
     tpl.derived.update(futures)
 
@@ -159,7 +160,7 @@ def prefetch(tpl, options):
             except BaseException as exc:      # template_side then makes it on the caller's thread
                 futures[key].set_exception(exc)
 
-    threads.pool().submit(run)
+    return threads.pool().submit(run)
 
 
 def _skin_entry(tpl, options):

@@ -39,8 +39,20 @@ def adapt(tpl: Template, scan_verts: np.ndarray, scan_tris: np.ndarray, scan_fdp
     scan_fdps: {FDP id: (3,)} clicked on the scan. markers: optional {marker name or held-out FDP id:
     (3,)} on the scan (for E_m). progress: optional callable(fraction 0..1, message).
     """
-    t_start = time.perf_counter()
     options = options or AdaptOptions()
+    # the template's side of the fit, made on a worker while the scan is calibrated; waited for before
+    # returning or raising, so that no worker outlives the call (Blender runs operators next)
+    pending = prefetch(tpl, options)
+    try:
+        return _adapt(tpl, scan_verts, scan_tris, scan_fdps, options, markers, progress)
+    finally:
+        if pending is not None:
+            pending.exception()
+
+
+def _adapt(tpl, scan_verts, scan_tris, scan_fdps, options, markers, progress):
+    """adapt's steps (the worker begun by adapt aside)."""
+    t_start = time.perf_counter()
     say = progress or (lambda f, msg: None)
 
     # 1. calibration (sec 3.1), after left/right labels that look swapped are put right
@@ -130,7 +142,6 @@ def calibrate(tpl: Template, scan_verts: np.ndarray, scan_tris: np.ndarray, scan
     """Step 1 (sec 3.1): the scan and its clicks in the template frame. Returns (the Fit to come, the
     template's FDPs the scanner can see, the clicks in the template frame, the similarity scan ->
     template, the calibration's report)."""
-    prefetch(tpl, options)                  # the template's side of the fit, on a worker meanwhile
     scan_verts = np.asarray(scan_verts, dtype=np.float64)
     scan_tris = np.asarray(scan_tris)
     geometry.check_mesh(scan_verts, scan_tris, "scan")
