@@ -234,15 +234,16 @@ def oracle(args):
             face), each vertex then moved to its closest point on the scan
     tps     a thin-plate RBF through every skin FDP at its exact true position (50-72 points, against
             the 8-11 clicks a person gives), then the closest point on the scan
+    exact   HeadAdapt from the 11 clicks' exact true places (no disagreement between people)
     What is left is tangential: where on a featureless cheek or forehead a vertex belongs, which the
-    surface cannot say. Printed beside HeadAdapt's figure from 11 clicks."""
+    surface cannot say. Printed beside HeadAdapt's figure from 11 people's clicks."""
     from scipy.interpolate import RBFInterpolator
 
     tpl = load_template()
     face = testheads.face_mask(tpl)
     fdps = tpl.fdp_points()
     print("\n== the floor: maps that know the truth, projected onto the scan; corr RMS, mm of the true head ==")
-    print(f"{'seed':>4s} {'affine':>7s} {'tps':>7s} {'fdps':>4s} {'headadapt(11)':>14s}")
+    print(f"{'seed':>4s} {'affine':>7s} {'tps':>7s} {'fdps':>4s} {'exact(11)':>10s} {'headadapt(11)':>14s}")
     rows = []
     for seed in args.seeds:
         head = testheads.make_head(seed, style=args.style, **_identity(args))
@@ -257,12 +258,14 @@ def oracle(args):
                             - np.array([fdps[k] for k in skin]) @ A[:3] - A[3], kernel="thin_plate_spline")
         tps = query.closest_points(X @ A + f(V))[0]
         clicks = {k: head.fdp_clicks[k] for k in mpeg4.CLICKS_11 if k in head.fdp_clicks}
-        res = adapt.adapt(tpl, head.scan_verts, head.scan_tris, clicks, markers=head.markers)
-        r = [measure(tpl, head, v, seen, query)["corr_rms"] for v in (affine, tps, res.verts_scan)]
+        exact = {k: head.true_fdps[k] for k in clicks}
+        fits = [adapt.adapt(tpl, head.scan_verts, head.scan_tris, c, markers=head.markers).verts_scan
+                for c in (exact, clicks)]
+        r = [measure(tpl, head, v, seen, query)["corr_rms"] for v in (affine, tps, *fits)]
         rows.append(r)
-        print(f"{seed:4d} {r[0]:7.2f} {r[1]:7.2f} {len(skin):4d} {r[2]:14.2f}", flush=True)
+        print(f"{seed:4d} {r[0]:7.2f} {r[1]:7.2f} {len(skin):4d} {r[2]:10.2f} {r[3]:14.2f}", flush=True)
     med = np.median(rows, axis=0)
-    print(f"{'median':>4s} {med[0]:7.2f} {med[1]:7.2f} {'':4s} {med[2]:14.2f}")
+    print(f"{'median':>4s} {med[0]:7.2f} {med[1]:7.2f} {'':4s} {med[2]:10.2f} {med[3]:14.2f}")
 
 
 def big():
