@@ -80,8 +80,8 @@ def build_parser():
     a.add_argument("--landmarks", required=True, help='FDPs on the scan: JSON {"points": {"3.7": [x,y,z]}} or MeshLab .pp')
     a.add_argument("--out", required=True, help="output folder (adapted_head.obj, report.json)")
     a.add_argument("--blend", help="also write a .blend with the result to this file")
-    a.add_argument("--preview", help="also write a PNG of the result with its heat map, front and side "
-                                     f"({2 * 640}x640), rendered headless (Workbench)")
+    a.add_argument("--preview", help="also write a PNG of the scan beside the result with its heat map, "
+                                     "front and side (1280x1280), rendered headless (Workbench)")
     common(a)
     f = sub.add_parser("folder", help="adapt every scan + landmarks pair in a folder, each scan in its own process")
     f.add_argument("--folder", required=True, help="folder of NAME.obj|ply|stl with NAME.json or NAME.pp beside it")
@@ -320,7 +320,7 @@ def _write_preview(path, tpl, result, verts, tris, points, report, log=print):
         blendout.write_preview(path, tpl, result, verts, tris, points, report)
     except RuntimeError as exc:
         raise FileFormatError(f"cannot write {path}: {str(exc).strip()}") from None
-    log(f"headadapt: preview (front and side, heat map) in {path}")
+    log(f"headadapt: preview (scan beside the head with its heat map, front and side) in {path}")
 
 
 def _write_blend(path, tpl, result, verts, tris, points, report, log=print):

@@ -201,10 +201,11 @@ def _aim(cam, root, direction, margin=1.15):
     return cam
 
 
-def render_preview(path, root, scan_obj=None, px=PREVIEW_VIEW_PX):
-    """Render the head with its heat map from the front and from the side (Workbench, Solid shading by
-    the colour attribute) and write the two views side by side as one PNG (2 px x px), atomically.
-    The scan is left out of the picture (the heat map says how far it is)."""
+def render_preview(path, root, scan_obj, px=PREVIEW_VIEW_PX):
+    """Render the scan and the head with its heat map from the front and from the side (Workbench,
+    Solid shading: the scan plain grey, the head by its colour attribute) and write them as one PNG
+    (2 px x 2 px), atomically: a row per view, front on top, the scan on the left and the head on
+    the right, so a likeness can be judged at a glance as well as read off the heat map."""
     path = pathlib.Path(path)
     sc = bpy.context.scene
     cams = []
@@ -214,35 +215,46 @@ def render_preview(path, root, scan_obj=None, px=PREVIEW_VIEW_PX):
         cam.data.lens = 85.0
         cams.append(_aim(cam, root, direction))
     bpy.context.view_layer.update()
+    shading = sc.display.shading
     before = (sc.camera, sc.render.engine, sc.render.resolution_x, sc.render.resolution_y,
               sc.render.resolution_percentage, sc.render.filepath)
-    hidden = scan_obj.hide_render if scan_obj is not None else None
+    head_objs = [o for o in root.children_recursive if o.type in ("MESH", "FONT")]
+    hidden = {o.name: o.hide_render for o in head_objs}
+    scan_state = (scan_obj.hide_render, scan_obj.display_type)
     if sc.world is None:
         sc.world = bpy.data.worlds.new("HeadAdapt preview")
     sc.render.engine = "BLENDER_WORKBENCH"
-    sc.display.shading.light = "STUDIO"
-    sc.display.shading.color_type = "VERTEX"
+    shading.light = "STUDIO"
+    shading.single_color = (0.8, 0.8, 0.8)
     sc.render.resolution_x = sc.render.resolution_y = px
     sc.render.resolution_percentage = 100
     sc.render.image_settings.file_format = "PNG"
     sc.render.image_settings.color_mode = "RGBA"
-    if scan_obj is not None:
-        scan_obj.hide_render = True
+    columns = (("scan", "SINGLE"), ("head", "VERTEX"))      # what each column shows, in which colour
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp_dir = tempfile.mkdtemp(prefix=f".{path.stem}.", dir=path.parent)
     try:
-        views = []
+        rows = []
         for i, cam in enumerate(cams):
             sc.camera = cam
-            sc.render.filepath = os.path.join(tmp_dir, f"view{i}.png")
-            bpy.ops.render.render(write_still=True)
-            img = bpy.data.images.load(sc.render.filepath)
-            pixels = np.empty(px * px * 4, dtype=np.float32)
-            img.pixels.foreach_get(pixels)
-            views.append(pixels.reshape(px, px, 4))
-            bpy.data.images.remove(img)
-        both = bpy.data.images.new("HeadAdapt preview", 2 * px, px, alpha=True)
-        both.pixels.foreach_set(np.concatenate(views, axis=1).ravel())
+            row = []
+            for j, (what, colour) in enumerate(columns):
+                for o in head_objs:     # the legend faces the front: from the side it is a stray line
+                    o.hide_render = what != "head" or hidden[o.name] or (
+                        i > 0 and str(o.get("headadapt_part", "")).startswith("legend"))
+                scan_obj.hide_render, scan_obj.display_type = what != "scan", "SOLID"
+                shading.color_type = colour
+                sc.render.filepath = os.path.join(tmp_dir, f"view{i}{j}.png")
+                bpy.ops.render.render(write_still=True)
+                img = bpy.data.images.load(sc.render.filepath)
+                pixels = np.empty(px * px * 4, dtype=np.float32)
+                img.pixels.foreach_get(pixels)
+                row.append(pixels.reshape(px, px, 4))
+                bpy.data.images.remove(img)
+            rows.append(np.concatenate(row, axis=1))
+        grid = np.concatenate(rows[::-1], axis=0)         # front on top: Blender's pixels start at the bottom
+        both = bpy.data.images.new("HeadAdapt preview", grid.shape[1], grid.shape[0], alpha=True)
+        both.pixels.foreach_set(grid.ravel())
         both.filepath_raw = os.path.join(tmp_dir, "both.png")
         both.file_format = "PNG"
         both.save()
@@ -257,8 +269,9 @@ def render_preview(path, root, scan_obj=None, px=PREVIEW_VIEW_PX):
         os.rmdir(tmp_dir)
         (sc.camera, sc.render.engine, sc.render.resolution_x, sc.render.resolution_y,
          sc.render.resolution_percentage, sc.render.filepath) = before
-        if scan_obj is not None:
-            scan_obj.hide_render = hidden
+        for o in head_objs:
+            o.hide_render = hidden[o.name]
+        scan_obj.hide_render, scan_obj.display_type = scan_state
         for cam in cams:
             data = cam.data
             bpy.data.objects.remove(cam)
@@ -268,7 +281,8 @@ def render_preview(path, root, scan_obj=None, px=PREVIEW_VIEW_PX):
 
 def write_preview(path, tpl, result, scan_verts, scan_tris, landmarks, report):
     """The batch's --preview: a fresh scene with the scan and the adapted head (not baked), rendered
-    from the front and the side with the heat map into one PNG (render_preview)."""
+    from the front and the side, the scan beside the head with its heat map, into one PNG
+    (render_preview)."""
     bpy.ops.wm.read_homefile(use_empty=True, use_factory_startup=True)
     root = build_result_scene(tpl, result, scan_verts, scan_tris, landmarks, report, bake=False)
     scan_obj = next(o for o in bpy.context.scene.objects if "headadapt_landmarks" in o)

@@ -562,9 +562,10 @@ def test_fdp_labels_are_depth_tested_and_thinned(ui_scene):
 
 
 @pytest.mark.slow
-def test_batch_preview_renders_front_and_side_with_the_heat_map(tmp_path):
-    """--preview out.png: one PNG, front and side beside each other (2 x 640 by 640), written atomically,
-    not blank: the heat map's blue and red are in it; a name that is not .png is refused (exit 2)."""
+def test_batch_preview_renders_the_scan_beside_the_head_front_and_side(tmp_path):
+    """--preview out.png: one PNG (2 x 640 by 2 x 640), written atomically: a row per view (front, side),
+    the scan on the left in plain grey, the head on the right with the heat map's blue and red; no
+    quarter blank; a name that is not .png is refused (exit 2)."""
     import struct
     import subprocess
     import sys
@@ -578,17 +579,21 @@ def test_batch_preview_renders_front_and_side_with_the_heat_map(tmp_path):
     assert proc.returncode == 0, proc.stderr
     assert sorted(p.name for p in png.parent.iterdir()) == ["preview.png"]      # no temporary left behind
     head = png.read_bytes()[:24]
-    assert head[:8] == b"\x89PNG\r\n\x1a\n" and struct.unpack(">II", head[16:24]) == (1280, 640)
+    assert head[:8] == b"\x89PNG\r\n\x1a\n" and struct.unpack(">II", head[16:24]) == (1280, 1280)
     img = bpy.data.images.load(str(png))
-    px = np.empty(1280 * 640 * 4, dtype=np.float32)
+    px = np.empty(1280 * 1280 * 4, dtype=np.float32)
     img.pixels.foreach_get(px)
     bpy.data.images.remove(img)
-    rgb = px.reshape(640, 1280, 4)[..., :3]
+    rgb = px.reshape(1280, 1280, 4)[..., :3]               # Blender's rows: bottom (the side view) first
     blue = (rgb[..., 2] > 0.5) & (rgb[..., 0] < 0.25)
     red = (rgb[..., 0] > 0.5) & (rgb[..., 2] < 0.25) & (rgb[..., 1] < 0.3)
-    for half in (slice(0, 640), slice(640, 1280)):            # the front view and the side view
-        assert blue[:, half].sum() > 500 and red[:, half].sum() > 100, (blue[:, half].sum(), red[:, half].sum())
-        assert rgb[:, half].std() > 0.05
+    grey = (rgb.min(axis=2) > 0.45) & (np.ptp(rgb, axis=2) < 0.05)
+    left, right = slice(0, 640), slice(640, 1280)
+    for row in (slice(0, 640), slice(640, 1280)):          # the side view, the front view
+        scan, adapted = (row, left), (row, right)
+        assert grey[scan].sum() > 20000 and blue[scan].sum() < 50, (grey[scan].sum(), blue[scan].sum())
+        assert blue[adapted].sum() > 500 and red[adapted].sum() > 100, (blue[adapted].sum(), red[adapted].sum())
+        assert rgb[scan].std() > 0.05 and rgb[adapted].std() > 0.05
     bad = subprocess.run(cmd + ["--overwrite", "--preview", str(tmp_path / "p.jpg")], capture_output=True, text=True)
     assert bad.returncode == 2 and bad.stderr.strip().count("\n") == 0 and "name a .png file" in bad.stderr
 
