@@ -5,7 +5,8 @@ Commands:
   adapt --scan SCAN --landmarks L.json|L.pp --out DIR [--blend FILE] [--preview PNG]   adapt the template onto one scan
   folder --folder DIR --out DIR [--blend] [--jobs N | --scheduler tcp://HOST:8786]
                                     adapt every scan + landmarks pair in a folder, each in its own process
-  demo [--out DIR]                  adapt onto the bundled sample scan (replaces an earlier demo's files)
+  demo [--out DIR]                  adapt onto the bundled sample scan, with a .blend and a preview picture
+                                    (replaces an earlier demo's files)
 
 The log states how the fit ended (folds left, distance RMS over the face the scan shows, marker
 error if the landmark file has markers); every warning (a flagged or dropped FDP, swapped labels,
@@ -699,7 +700,8 @@ def main(argv=None):
     if args.command == "demo":           # the demo's own files, from the bundled inputs: always replaced
         out = pathlib.Path(args.out)
         return _adapt_exit_code(SAMPLE_DIR / "scan.ply", SAMPLE_DIR / "landmarks.json", out, args.levels,
-                                args.calibration, args.keep_flagged, out / "demo.blend", True)
+                                args.calibration, args.keep_flagged, out / "demo.blend", True,
+                                preview=out / "preview.png")
     try:
         summary = run_folder(args.folder, args.out, args.jobs, args.levels, args.calibration, args.keep_flagged,
                              args.blend, args.overwrite, args.timeout, args.memory_gb, args.scheduler)
