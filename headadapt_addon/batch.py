@@ -3,7 +3,7 @@
 
 Commands:
   adapt --scan SCAN --landmarks L.json|L.pp --out DIR [--blend FILE] [--preview PNG]   adapt the template onto one scan
-  folder --folder DIR --out DIR [--blend] [--jobs N | --scheduler tcp://HOST:8786]
+  folder --folder DIR --out DIR [--blend] [--preview] [--jobs N | --scheduler tcp://HOST:8786]
                                     adapt every scan + landmarks pair in a folder, each in its own process
   demo [--out DIR]                  adapt onto the bundled sample scan, with a .blend and a preview picture
                                     (replaces an earlier demo's files)
@@ -88,6 +88,8 @@ def build_parser():
     f.add_argument("--folder", required=True, help="folder of NAME.obj|ply|stl with NAME.json or NAME.pp beside it")
     f.add_argument("--out", required=True, help="output folder: one sub-folder per scan, plus summary.json")
     f.add_argument("--blend", action="store_true", help="also write OUT/NAME/NAME.blend for each scan")
+    f.add_argument("--preview", action="store_true",
+                   help="also write OUT/NAME/preview.png for each scan (the scan beside the head with its heat map)")
     f.add_argument("--jobs", type=int, default=0, help="scans at a time (default: the number of cores)")
     f.add_argument("--timeout", type=float, default=900.0,
                    help="seconds a scan may take before its process is killed (default 900)")
@@ -490,7 +492,8 @@ def _scan_main(job_text: str) -> int:
         resource.setrlimit(resource.RLIMIT_AS, (limit if hard == resource.RLIM_INFINITY else min(limit, hard), hard))
     return _adapt_exit_code(job["scan"], job["landmarks"], job["out_dir"], job["levels"], job["calibration"],
                             job["keep_flagged"], job["blend"], True, job["run"],
-                            memory_hint=f" (the limit is {job['memory_gb']:g} GB: --memory-gb)")
+                            memory_hint=f" (the limit is {job['memory_gb']:g} GB: --memory-gb)",
+                            preview=job.get("preview"))
 
 
 def _exit_with_parent() -> None:
@@ -524,7 +527,7 @@ def _adapt_exit_code(scan, landmarks, out, levels, calibration, keep_flagged, bl
 
 
 def run_folder(folder, out, jobs=0, levels=None, calibration="auto", keep_flagged=False, blend=False, overwrite=False,
-               timeout=900.0, memory_gb=8.0, scheduler=None, log=print, warn=_stderr):
+               timeout=900.0, memory_gb=8.0, scheduler=None, log=print, warn=_stderr, preview=False):
     """Adapt every scan + landmarks pair of a folder, each scan in its own process (local threads start
     them, or the tasks of a Dask cluster at `scheduler`); return the summary, also in OUT/summary.json,
     which is rewritten after every scan and after an interruption (Ctrl-C, SIGTERM: "interrupted" true,
@@ -543,12 +546,13 @@ def run_folder(folder, out, jobs=0, levels=None, calibration="auto", keep_flagge
     run = uuid.uuid4().hex
     work = [{"scan": str(s), "landmarks": str(m) if m else None, "out_dir": str(out / name), "name": name,
              "blend": str(out / name / f"{name}.blend") if blend else None, "levels": levels,
+             "preview": str(out / name / "preview.png") if preview else None,
              "calibration": calibration, "keep_flagged": keep_flagged, "timeout": timeout, "memory_gb": memory_gb,
              "run": run} for (s, m), name in zip(pairs, names)]
     outputs = {"summary": out / "summary.json"}
     for job in work:
         outputs.update({f"{what} of {job['name']}": path for what, path in
-                        {**result_paths(job["out_dir"], job["blend"]),
+                        {**result_paths(job["out_dir"], job["blend"], job["preview"]),
                          "log": pathlib.Path(job["out_dir"]) / "log.txt"}.items()})
     check_outputs([p for pair in pairs for p in pair if p], outputs, overwrite)
     remove_results(outputs.values())
@@ -704,7 +708,8 @@ def main(argv=None):
                                 preview=out / "preview.png")
     try:
         summary = run_folder(args.folder, args.out, args.jobs, args.levels, args.calibration, args.keep_flagged,
-                             args.blend, args.overwrite, args.timeout, args.memory_gb, args.scheduler)
+                             args.blend, args.overwrite, args.timeout, args.memory_gb, args.scheduler,
+                             preview=args.preview)
     except HeadAdaptError as exc:
         _stderr(f"headadapt: error: {exc}")
         return EXIT_BAD_INPUT

@@ -1,7 +1,7 @@
 """Folder mode for unattended runs: each scan in its own process (timeout, memory limit), distinct
 outputs for scans that share a stem, progress with count and ETA, summary.json always written
-(after Ctrl-C and SIGTERM too, naming what did not finish), exit 4 when a scan failed, --blend as a
-flag, the same summary on a Dask cluster; kill -9 leaves complete results only and no scan running."""
+(after Ctrl-C and SIGTERM too, naming what did not finish), exit 4 when a scan failed, --blend and
+--preview as flags, the same summary on a Dask cluster; kill -9 leaves complete results only and no scan running."""
 import json
 import os
 import pathlib
@@ -146,13 +146,17 @@ def test_a_scan_over_its_memory_limit_fails_alone(tmp_path):
     assert "--memory-gb" in (tmp_path / "out" / "a" / "log.txt").read_text()
 
 
-def test_blend_is_a_flag_writing_one_blend_per_scan(tmp_path):
+def test_blend_and_preview_are_flags_writing_one_of_each_per_scan(tmp_path):
+    import struct
+
     src = tmp_path / "scans"
     add_scan(src, "a.ply")
-    proc = subprocess.run(batch_cmd("folder", "--folder", src, "--out", tmp_path / "out", "--levels", "1", "--blend"),
-                          capture_output=True, text=True, timeout=300, cwd=ROOT)
+    proc = subprocess.run(batch_cmd("folder", "--folder", src, "--out", tmp_path / "out", "--levels", "1", "--blend",
+                                    "--preview"), capture_output=True, text=True, timeout=300, cwd=ROOT)
     assert proc.returncode == 0, proc.stdout + proc.stderr
     assert (tmp_path / "out" / "a" / "a.blend").stat().st_size > 100_000
+    png = (tmp_path / "out" / "a" / "preview.png").read_bytes()[:24]
+    assert png[:8] == b"\x89PNG\r\n\x1a\n" and struct.unpack(">II", png[16:24]) == (1280, 1280)
     stages = json.loads((tmp_path / "out" / "a" / "report.json").read_text())["stage_seconds"]
     assert {"read", "calibrate", "prepare", "level_0", "level_1", "unfold", "transfer", "bake", "blend"} <= set(stages)
     assert stages["blend"] >= stages["transfer"] + stages["bake"] > 0
