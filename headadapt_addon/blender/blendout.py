@@ -216,13 +216,19 @@ def render_preview(path, root, scan_obj, px=PREVIEW_VIEW_PX):
         cams.append(_aim(cam, root, direction))
     bpy.context.view_layer.update()
     shading = sc.display.shading
-    before = (sc.camera, sc.render.engine, sc.render.resolution_x, sc.render.resolution_y,
-              sc.render.resolution_percentage, sc.render.filepath)
+    # the scene's settings this changes, put back afterwards (the panel's Save Picture renders the
+    # artist's own scene)
+    kept = [(sc, "camera"), (sc.render, "engine"), (sc.render, "resolution_x"), (sc.render, "resolution_y"),
+            (sc.render, "resolution_percentage"), (sc.render, "filepath"), (sc.render.image_settings, "file_format"),
+            (sc.render.image_settings, "color_mode"), (shading, "light"), (shading, "color_type"),
+            (shading, "single_color"), (scan_obj, "hide_render"), (scan_obj, "display_type")]
+    before = [(owner, name, getattr(owner, name)) for owner, name in kept]
+    before = [(owner, name, tuple(v) if name == "single_color" else v) for owner, name, v in before]
     head_objs = [o for o in root.children_recursive if o.type in ("MESH", "FONT")]
     hidden = {o.name: o.hide_render for o in head_objs}
-    scan_state = (scan_obj.hide_render, scan_obj.display_type)
+    world = None
     if sc.world is None:
-        sc.world = bpy.data.worlds.new("HeadAdapt preview")
+        sc.world = world = bpy.data.worlds.new("HeadAdapt preview")
     sc.render.engine = "BLENDER_WORKBENCH"
     shading.light = "STUDIO"
     shading.single_color = (0.8, 0.8, 0.8)
@@ -267,11 +273,13 @@ def render_preview(path, root, scan_obj, px=PREVIEW_VIEW_PX):
         for f in pathlib.Path(tmp_dir).glob("*"):
             f.unlink(missing_ok=True)
         os.rmdir(tmp_dir)
-        (sc.camera, sc.render.engine, sc.render.resolution_x, sc.render.resolution_y,
-         sc.render.resolution_percentage, sc.render.filepath) = before
+        for owner, name, value in before:
+            setattr(owner, name, value)
         for o in head_objs:
             o.hide_render = hidden[o.name]
-        scan_obj.hide_render, scan_obj.display_type = scan_state
+        if world is not None:
+            sc.world = None
+            bpy.data.worlds.remove(world)
         for cam in cams:
             data = cam.data
             bpy.data.objects.remove(cam)

@@ -594,11 +594,41 @@ class HEADADAPT_OT_import_fap(_Base, ImportHelper, bpy.types.Operator):
         return {"FINISHED"}
 
 
+class HEADADAPT_OT_save_picture(ExportHelper, bpy.types.Operator):
+    """Save a picture of the result: the scan beside the adapted head with its heat map, front and side
+    (PNG, 1280x1280, Workbench), as the batch's --preview writes it"""
+    bl_idname = "headadapt.save_picture"
+    bl_label = "Save Picture"
+    filename_ext = ".png"
+    filter_glob: bpy.props.StringProperty(default="*.png", options={"HIDDEN"})
+
+    @classmethod
+    def poll(cls, context):
+        problem = scan_problem(context)
+        if problem is None and settings(context).result_root is None:
+            problem = "no result yet: adapt first"
+        return poll_with_message(cls, problem)
+
+    def execute(self, context):
+        from ..blender import blendout
+        s = settings(context)
+        if not self.filepath.lower().endswith(".png"):
+            self.report({"ERROR"}, f"{self.filepath}: name a .png file")
+            return {"CANCELLED"}
+        try:
+            blendout.render_preview(self.filepath, s.result_root, s.scan)
+        except HeadAdaptError as exc:
+            self.report({"ERROR"}, str(exc))
+            return {"CANCELLED"}
+        self.report({"INFO"}, f"saved the picture of {s.result_root.name} beside {s.scan.name} to {self.filepath}")
+        return {"FINISHED"}
+
+
 classes = (HEADADAPT_OT_add_template, HEADADAPT_OT_use_active_as_scan, HEADADAPT_OT_import_landmarks,
            HEADADAPT_OT_export_landmarks, HEADADAPT_OT_clear_landmark, HEADADAPT_OT_suggest_landmarks,
            HEADADAPT_OT_accept_suggestions, HEADADAPT_OT_reject_suggestions, HEADADAPT_OT_load_sample_scan,
            HEADADAPT_OT_calibrate, HEADADAPT_OT_adapt,
-           HEADADAPT_OT_bake_expressions, HEADADAPT_OT_import_fap)
+           HEADADAPT_OT_bake_expressions, HEADADAPT_OT_import_fap, HEADADAPT_OT_save_picture)
 
 
 register, unregister = bpy.utils.register_classes_factory(classes)

@@ -203,6 +203,7 @@ def draw_report(layout, context):
         for i, part in enumerate(textwrap.wrap(line, _wrap(context))):   # the sidebar is narrow: wrap, do not cut
             layout.label(text=part, icon="ERROR" if i == 0 else "BLANK1")
     layout.label(text="Heat map and its legend: Display panel")
+    layout.operator("headadapt.save_picture", icon="RENDER_STILL")
 
 
 def report_rows(rep):

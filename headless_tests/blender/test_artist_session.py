@@ -598,6 +598,45 @@ def test_batch_preview_renders_the_scan_beside_the_head_front_and_side(tmp_path)
     assert bad.returncode == 2 and bad.stderr.strip().count("\n") == 0 and "name a .png file" in bad.stderr
 
 
+@pytest.mark.slow
+def test_save_picture_renders_the_scan_beside_the_result_and_leaves_the_scene_as_it_was(ui_scene, tmp_path):
+    """The Report panel's Save Picture: greyed (saying why) until there is a result; then the batch's
+    preview picture of the artist's scene (1280x1280 PNG), after which the scene's render and display
+    settings, its objects and worlds, and the scan's wire display are as they were; not .png: refused."""
+    import struct
+
+    import bpy
+
+    from headadapt_addon.blender import landmarks
+
+    with bpy.context.temp_override(**ui_scene):
+        sc = bpy.context.scene
+        scan = _sample_scan()
+        landmarks.set_landmarks(scan, meshio.read_landmarks(SAMPLE_DIR / "landmarks.json"))
+        assert "adapt first" in _greyed_because(bpy.ops.headadapt.save_picture)
+        assert bpy.ops.headadapt.adapt(levels=0) == {"FINISHED"}
+        sc.render.image_settings.file_format = "JPEG"
+        sc.render.resolution_x, sc.render.resolution_percentage = 1920, 50
+
+        def state():
+            return (sc.render.engine, sc.render.resolution_x, sc.render.resolution_y, sc.render.resolution_percentage,
+                    sc.render.image_settings.file_format, sc.display.shading.color_type,
+                    tuple(sc.display.shading.single_color), sc.camera, sc.world, scan.display_type, scan.hide_render,
+                    sorted(o.name for o in bpy.data.objects), sorted(w.name for w in bpy.data.worlds),
+                    sorted((o.name, o.hide_render) for o in sc.headadapt.result_root.children_recursive))
+
+        before = state()
+        assert scan.display_type == "WIRE"
+        png = tmp_path / "pic.png"
+        assert bpy.ops.headadapt.save_picture(filepath=str(png)) == {"FINISHED"}
+        head = png.read_bytes()[:24]
+        assert head[:8] == b"\x89PNG\r\n\x1a\n" and struct.unpack(">II", head[16:24]) == (1280, 1280)
+        assert state() == before
+        with pytest.raises(RuntimeError, match="name a .png file"):
+            bpy.ops.headadapt.save_picture(filepath=str(tmp_path / "pic.jpg"))
+        assert not (tmp_path / "pic.jpg").exists()
+
+
 def test_the_preview_camera_frames_the_legend_s_text(clean_scene):
     """The preview's cameras frame the head's meshes and the heat legend's text labels (text objects):
     framed by the meshes alone, the labels beside a long, narrow head fell out of the picture (the
