@@ -185,10 +185,14 @@ def draw_report(layout, context):
         return
     rep = json.loads(s.report_json)
     table = layout.column(align=True)
-    for cells in report_rows(rep):      # one row per level: read across, as a table is read
+    # the whole table needs about 50 characters across; a narrower sidebar gets its essentials
+    wide = _wrap(context) >= WIDE_REPORT_CHARS
+    for cells in report_rows(rep, wide):      # one row per level: read across, as a table is read
         row = table.row(align=True)
         for cell in cells:
             row.label(text=cell)
+    if not wide:
+        table.label(text="E_d, E_m, E: widen the sidebar")
     dropped = rep.get("dropped_fdps") or []
     layout.label(text="Dropped clicks: " + (", ".join(dropped) if dropped else "none"),
                  icon="X" if dropped else "CHECKMARK")
@@ -198,25 +202,32 @@ def draw_report(layout, context):
         layout.label(text="Fit ok" if outcome["ok"] else "Fit NOT trustworthy",
                      icon="CHECKMARK" if outcome["ok"] else "ERROR")
         for line in outcome_text.measures(outcome):
-            layout.label(text=line)
+            for part in textwrap.wrap(line, _wrap(context)):   # wrapped, as the warnings below
+                layout.label(text=part)
     for line in outcome_text.warning_lines(outcome, rep.get("flagged_fdps"), rep.get("dropped_fdps", ())):
         for i, part in enumerate(textwrap.wrap(line, _wrap(context))):   # the sidebar is narrow: wrap, do not cut
             layout.label(text=part, icon="ERROR" if i == 0 else "BLANK1")
-    layout.label(text="Heat map and its legend: Display panel")
+    for part in textwrap.wrap("Heat map and its legend: Display panel", _wrap(context)):
+        layout.label(text=part)
     layout.operator("headadapt.save_picture", icon="RENDER_STILL")
 
 
-def report_rows(rep):
+WIDE_REPORT_CHARS = 50     # characters across the sidebar (_wrap) from which the Report shows E_d, E_m and E
+
+
+def report_rows(rep, wide=True):
     """The Report panel's level table as rows of cells, the header first (units in it); the best level
-    starred; E_m (held-out markers, mm^2) only where markers were given."""
-    markers = any(lv.get("E_m") is not None for lv in rep["levels"])
-    rows = [["Level", "Pairs", "E_d mm²", "RMS mm", *(["E_m mm²"] if markers else []), "E mm²", "Time s"]]
+    starred; E_m (held-out markers, mm^2) only where markers were given. Not wide: level, pairs, RMS
+    and seconds only (a default-width sidebar cuts seven columns to their first letters)."""
+    markers = wide and any(lv.get("E_m") is not None for lv in rep["levels"])
+    rows = [["Level", "Pairs", *(["E_d mm²"] if wide else []), "RMS mm", *(["E_m mm²"] if markers else []),
+             *(["E mm²"] if wide else []), "Time s"]]
     for lv in rep["levels"]:
         rms = lv.get("E_d_rms_mm")
         rows.append([f"{lv['level']}{'*' if lv['level'] == rep['best_level'] else ''}", str(lv["pairs"]),
-                     f"{lv['E_d']:.3f}", "-" if rms is None else f"{rms:.2f}",
+                     *([f"{lv['E_d']:.3f}"] if wide else []), "-" if rms is None else f"{rms:.2f}",
                      *([f"{lv['E_m']:.2f}" if lv.get("E_m") is not None else "-"] if markers else []),
-                     f"{lv['E']:.3f}", f"{lv['seconds']:.1f}"])
+                     *([f"{lv['E']:.3f}"] if wide else []), f"{lv['seconds']:.1f}"])
     return rows
 
 

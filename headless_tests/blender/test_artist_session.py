@@ -236,6 +236,9 @@ def test_report_table_reads_row_by_row_with_units(ui_scene):
     assert rows[0] == ["Level", "Pairs", "E_d mm²", "RMS mm", "E_m mm²", "E mm²", "Time s"]
     assert rows[1] == ["0", "74", "7.100", "2.61", "3.20", "7.130", "0.5"]
     assert rows[2] == ["1*", "912", "0.400", "0.61", "1.10", "0.411", "2.0"]      # the best level starred
+    # a default-width sidebar: the essentials, which fit (seven columns were cut to their first letters)
+    assert panels.report_rows(rep, wide=False) == [["Level", "Pairs", "RMS mm", "Time s"], ["0", "74", "2.61", "0.5"],
+                                                   ["1*", "912", "0.61", "2.0"]]
     texts = [t for t, _icon in layout.labels()]
     assert ("Dropped clicks: 5.1", "X") in layout.labels()
     assert "marker RMS 1.05 mm" in texts                                  # the held-out markers' error
