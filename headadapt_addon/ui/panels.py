@@ -66,7 +66,8 @@ def draw_landmarks(layout, context):
     col.label(text=f"{len(pts)} of {len(mpeg4.FDPS)} FDPs placed")
     problem = landmark_problem(context) if s.scan is not None else None
     if problem is None and s.scan is not None:
-        col.label(text="Enough to calibrate and adapt", icon="CHECKMARK")
+        for i, part in enumerate(textwrap.wrap("Enough to calibrate and adapt", _wrap(context))):
+            col.label(text=part, icon="CHECKMARK" if i == 0 else "BLANK1")
     elif problem:
         for i, part in enumerate(textwrap.wrap(problem[:1].upper() + problem[1:], _wrap(context))):
             col.label(text=part, icon="ERROR" if i == 0 else "BLANK1")
