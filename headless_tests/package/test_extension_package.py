@@ -266,7 +266,7 @@ def test_linux_zip_installs_registers_and_runs_the_workflow_in_a_clean_user_conf
     assert str(user_dir) in installed["repo_dir"]
     assert "HEADADAPT_PT_template" in installed["panels"], installed["panels"]
     expected = _expected_operators()
-    assert len(expected) == 14 and sorted(installed["operators"]) == expected, installed["operators"]
+    assert len(expected) == 15 and sorted(installed["operators"]) == expected, installed["operators"]
     # each one is the installed copy's class, not the source tree's
     assert all(module.startswith(EXT_MODULE + ".") for module in installed["operators"].values()), installed["operators"]
 
