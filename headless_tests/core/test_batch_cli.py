@@ -203,7 +203,8 @@ def _midpoint_split(verts, tris):
 @pytest.mark.slow
 def test_a_dense_scan_is_fitted_on_its_clusters_and_says_so(tmp_path, inputs):
     """The sample scan cut finer (median edge 0.9 mm in the template's frame, 131k vertices) is fitted
-    on its 1 mm grid's clusters; the log and report.json say so, and the fit is ok."""
+    on its 1 mm grid's clusters; the log and report.json say so, and the fit is ok. Its --preview
+    (drawn from such clusters too) is written."""
     from headadapt_addon.core import meshio
     from tools import testheads
 
@@ -211,8 +212,10 @@ def test_a_dense_scan_is_fitted_on_its_clusters_and_says_so(tmp_path, inputs):
     verts, tris = meshio.read_mesh(scan)[:2]
     dense = tmp_path / "in" / "dense.ply"
     testheads.write_ply(dense, *_midpoint_split(verts, tris))
-    proc = batch("adapt", "--scan", dense, "--landmarks", marks, "--out", tmp_path / "out")
+    proc = batch("adapt", "--scan", dense, "--landmarks", marks, "--out", tmp_path / "out",
+                 "--preview", tmp_path / "out" / "preview.png")
     assert proc.returncode == 0, proc.stdout + proc.stderr
+    assert (tmp_path / "out" / "preview.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     report = json.loads((tmp_path / "out" / "report.json").read_text())
     clustered = report["calibration"]["scan_clustered"]
     assert clustered["cell_mm"] == 1.0 and clustered["vertices"] == report["scan_vertices"] > 3.5 * len(verts)
