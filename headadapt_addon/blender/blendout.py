@@ -222,8 +222,9 @@ def render_preview(path, root, scan_obj, px=PREVIEW_VIEW_PX):
             (sc.render, "resolution_percentage"), (sc.render, "filepath"), (sc.render.image_settings, "file_format"),
             (sc.render.image_settings, "color_mode"), (shading, "light"), (shading, "color_type"),
             (shading, "single_color"), (scan_obj, "hide_render"), (scan_obj, "display_type")]
-    before = [(owner, name, getattr(owner, name)) for owner, name in kept]
-    before = [(owner, name, tuple(v) if name == "single_color" else v) for owner, name, v in before]
+    # (a colour is read as a live view of the property: copied)
+    before = [(owner, name, tuple(getattr(owner, name)) if name == "single_color" else getattr(owner, name))
+              for owner, name in kept]
     head_objs = [o for o in root.children_recursive if o.type in ("MESH", "FONT")]
     hidden = {o.name: o.hide_render for o in head_objs}
     world = None
@@ -298,9 +299,9 @@ def write_preview(path, tpl, result, scan_verts, scan_tris, landmarks, report):
     1M-vertex scan's side view took 6.5 s in software rendering, its clusters' 2.3 s."""
     from ..core.mesh import simplify
 
-    cell = PREVIEW_SCAN_CELL / result.similarity.scale           # the scan's unit
-    if simplify.median_edge(scan_verts, scan_tris) < cell:
-        scan_verts, scan_tris, _ = simplify.cluster(np.asarray(scan_verts, dtype=np.float64), scan_tris, cell)
+    clustered = simplify.cluster_if_finer(scan_verts, scan_tris, PREVIEW_SCAN_CELL / result.similarity.scale)
+    if clustered is not None:                                   # (the cell in the scan's unit)
+        scan_verts, scan_tris, _ = clustered
     bpy.ops.wm.read_homefile(use_empty=True, use_factory_startup=True)
     root = build_result_scene(tpl, result, scan_verts, scan_tris, landmarks, report, bake=False)
     scan_obj = next(o for o in bpy.context.scene.objects if "headadapt_landmarks" in o)

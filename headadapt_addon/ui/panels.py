@@ -37,6 +37,16 @@ def _wrap(context):
     return max(24, int(region.width / (8.0 * context.preferences.view.ui_scale)) - 6)
 
 
+def _wrapped(layout, context, text, icon=None):
+    """text as labels wrapped to the sidebar's width (_wrap), not cut; the icon on the first line, the
+    others indented as far."""
+    for i, part in enumerate(textwrap.wrap(text, _wrap(context))):
+        if icon is None:
+            layout.label(text=part)
+        else:
+            layout.label(text=part, icon=icon if i == 0 else "BLANK1")
+
+
 def draw_template(layout, context):
     s = _settings(context)
     if s.template_root is not None and s.template_root.name in context.scene.objects:
@@ -66,11 +76,9 @@ def draw_landmarks(layout, context):
     col.label(text=f"{len(pts)} of {len(mpeg4.FDPS)} FDPs placed")
     problem = landmark_problem(context) if s.scan is not None else None
     if problem is None and s.scan is not None:
-        for i, part in enumerate(textwrap.wrap("Enough to calibrate and adapt", _wrap(context))):
-            col.label(text=part, icon="CHECKMARK" if i == 0 else "BLANK1")
+        _wrapped(col, context, "Enough to calibrate and adapt", "CHECKMARK")
     elif problem:
-        for i, part in enumerate(textwrap.wrap(problem[:1].upper() + problem[1:], _wrap(context))):
-            col.label(text=part, icon="ERROR" if i == 0 else "BLANK1")
+        _wrapped(col, context, problem[:1].upper() + problem[1:], "ERROR")
     col.prop(s, "active_fdp")
     col.label(text=mpeg4.FDPS[s.active_fdp].label)
     col.operator("headadapt.pick_landmarks", icon="RESTRICT_SELECT_OFF")
@@ -203,33 +211,32 @@ def draw_report(layout, context):
         layout.label(text="Fit ok" if outcome["ok"] else "Fit NOT trustworthy",
                      icon="CHECKMARK" if outcome["ok"] else "ERROR")
         for line in outcome_text.measures(outcome):
-            for part in textwrap.wrap(line, _wrap(context)):   # wrapped, as the warnings below
-                layout.label(text=part)
+            _wrapped(layout, context, line)
     for line in outcome_text.warning_lines(outcome, rep.get("flagged_fdps"), rep.get("dropped_fdps", ())):
-        for i, part in enumerate(textwrap.wrap(line, _wrap(context))):   # the sidebar is narrow: wrap, do not cut
-            layout.label(text=part, icon="ERROR" if i == 0 else "BLANK1")
-    for part in textwrap.wrap("Heat map and its legend: Display panel", _wrap(context)):
-        layout.label(text=part)
+        _wrapped(layout, context, line, "ERROR")
+    _wrapped(layout, context, "Heat map and its legend: Display panel")
     layout.operator("headadapt.save_picture", icon="RENDER_STILL")
 
 
 WIDE_REPORT_CHARS = 50     # characters across the sidebar (_wrap) from which the Report shows E_d, E_m and E
+NARROW_REPORT = ("Level", "Pairs", "RMS mm", "Time s")      # the columns shown in a narrower one
 
 
 def report_rows(rep, wide=True):
     """The Report panel's level table as rows of cells, the header first (units in it); the best level
     starred; E_m (held-out markers, mm^2) only where markers were given. Not wide: level, pairs, RMS
     and seconds only (a default-width sidebar cuts seven columns to their first letters)."""
-    markers = wide and any(lv.get("E_m") is not None for lv in rep["levels"])
-    rows = [["Level", "Pairs", *(["E_d mm²"] if wide else []), "RMS mm", *(["E_m mm²"] if markers else []),
-             *(["E mm²"] if wide else []), "Time s"]]
-    for lv in rep["levels"]:
-        rms = lv.get("E_d_rms_mm")
-        rows.append([f"{lv['level']}{'*' if lv['level'] == rep['best_level'] else ''}", str(lv["pairs"]),
-                     *([f"{lv['E_d']:.3f}"] if wide else []), "-" if rms is None else f"{rms:.2f}",
-                     *([f"{lv['E_m']:.2f}" if lv.get("E_m") is not None else "-"] if markers else []),
-                     *([f"{lv['E']:.3f}"] if wide else []), f"{lv['seconds']:.1f}"])
-    return rows
+    markers = any(lv.get("E_m") is not None for lv in rep["levels"])
+    columns = [("Level", lambda lv: f"{lv['level']}{'*' if lv['level'] == rep['best_level'] else ''}"),
+               ("Pairs", lambda lv: str(lv["pairs"])),
+               ("E_d mm²", lambda lv: f"{lv['E_d']:.3f}"),
+               ("RMS mm", lambda lv: "-" if lv.get("E_d_rms_mm") is None else f"{lv['E_d_rms_mm']:.2f}"),
+               ("E_m mm²", lambda lv: "-" if lv.get("E_m") is None else f"{lv['E_m']:.2f}"),
+               ("E mm²", lambda lv: f"{lv['E']:.3f}"),
+               ("Time s", lambda lv: f"{lv['seconds']:.1f}")]
+    shown = [(head, cell) for head, cell in columns if (wide or head in NARROW_REPORT)
+             and (markers or head != "E_m mm²")]
+    return [[head for head, _ in shown]] + [[cell(lv) for _, cell in shown] for lv in rep["levels"]]
 
 
 DRAW = {"TEMPLATE": draw_template, "SCAN": draw_scan, "LANDMARKS": draw_landmarks,

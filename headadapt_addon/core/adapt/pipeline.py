@@ -153,11 +153,11 @@ def calibrate(tpl: Template, scan_verts: np.ndarray, scan_tris: np.ndarray, scan
     sim, info = calibration.calibrate(given, tpl_fdps, method=options.calibration)
     sv = sim.apply(scan_verts)
     # a dense scan is clustered once to the detail the fit can use (mesh/simplify.py)
-    cell, border = options.scan_cell, None
-    if cell and simplify.median_edge(sv, scan_tris) < cell:
+    border, clustered = None, simplify.cluster_if_finer(sv, scan_tris, options.scan_cell)
+    if clustered is not None:
         before = len(sv)
-        sv, scan_tris, border = simplify.cluster(sv, scan_tris, cell)     # border: the scan's own
-        info = {**info, "scan_clustered": {"cell_mm": cell * MM, "vertices": before, "kept": len(sv)}}
+        sv, scan_tris, border = clustered                                    # border: the scan's own
+        info = {**info, "scan_clustered": {"cell_mm": options.scan_cell * MM, "vertices": before, "kept": len(sv)}}
     q_fdp = {k: sim.apply(v) for k, v in given.items()}
     # the scan's spatial tree, begun on a worker thread before the winding check below: kept unless it
     # turns a piece (a turned triangle's corners come in another order, and so its rounding)

@@ -37,6 +37,13 @@ def _spread(values, mask):
     return out
 
 
+def cluster_if_finer(verts, tris, cell):
+    """cluster(verts, tris, cell) when the mesh's median edge is under `cell` (0: never), else None."""
+    if cell and len(tris) and median_edge(verts, tris) < cell:
+        return cluster(verts, tris, cell)
+    return None
+
+
 def cluster(verts, tris, cell):
     """(verts (k,3), tris (j,3), border (e,2)) of the mesh clustered on a grid of `cell` (the verts'
     unit): every used vertex merged into the mean of its cell's, the triangles that keep three corners,
