@@ -2,7 +2,7 @@
 
     ./ha bench adapt [--seeds 100-107] [--clicks 8,11] [--no-nricp] [--big] [--style legacy]
     ./ha bench adapt --real            # the real scans in ../shared/scans, clicks in headless_tests/data
-    ./ha bench adapt --oracle          # what a perfect global map would reach (the floor), no method run
+    ./ha bench adapt --oracle          # the floor: maps that know the truth, and HeadAdapt given part of it
     ./ha bench adapt --seeds 0-3 --identity 0 --targets 0   # heads whose truth is the template itself
 
 Seeds 100-107 are the REPORTING set (the default): figures quoted anywhere come from them. Seeds
@@ -32,6 +32,7 @@ A peer that raises on a head counts as failed there (inf), and the run goes on.
 scan's inside (closest point on no border triangle), in the template's mm, and seconds.
 """
 import argparse
+import contextlib
 import json
 import os
 import pathlib
@@ -44,6 +45,7 @@ ROOT = pathlib.Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
 
 from headadapt_addon.core import adapt, meshio, mpeg4
+from headadapt_addon.core.adapt import level0
 from headadapt_addon.core.mesh import geometry, spatial
 from headadapt_addon.core.template import load_template
 from tools import testheads
@@ -235,6 +237,10 @@ def oracle(args):
     tps     a thin-plate RBF through every skin FDP at its exact true position (50-72 points, against
             the 8-11 clicks a person gives), then the closest point on the scan
     exact   HeadAdapt from the 11 clicks' exact true places (no disagreement between people)
+    eyes    HeadAdapt from the 11 people's clicks but the four eye corners at their exact true places
+            (their FDPs lie on the lid margin behind the lids; people click the nearest skin they see)
+    level0  HeadAdapt from the 11 people's clicks with its level 0 (the whole-skin affine map) replaced
+            by the affine map of the `affine` column: how much of the error level 0 decides
     What is left is tangential: where on a featureless cheek or forehead a vertex belongs, which the
     surface cannot say. Printed beside HeadAdapt's figure from 11 people's clicks."""
     from scipy.interpolate import RBFInterpolator
@@ -243,7 +249,8 @@ def oracle(args):
     face = testheads.face_mask(tpl)
     fdps = tpl.fdp_points()
     print("\n== the floor: maps that know the truth, projected onto the scan; corr RMS, mm of the true head ==")
-    print(f"{'seed':>4s} {'affine':>7s} {'tps':>7s} {'fdps':>4s} {'exact(11)':>10s} {'headadapt(11)':>14s}")
+    print(f"{'seed':>4s} {'affine':>7s} {'tps':>7s} {'fdps':>4s} {'exact(11)':>10s} {'eyes(11)':>9s} "
+          f"{'level0(11)':>11s} {'headadapt(11)':>14s}")
     rows = []
     for seed in args.seeds:
         head = testheads.make_head(seed, style=args.style, **_identity(args))
@@ -259,13 +266,41 @@ def oracle(args):
         tps = query.closest_points(X @ A + f(V))[0]
         clicks = {k: head.fdp_clicks[k] for k in mpeg4.CLICKS_11 if k in head.fdp_clicks}
         exact = {k: head.true_fdps[k] for k in clicks}
+        eyes = {k: head.true_fdps[k] if k in EYE_CORNERS else p for k, p in clicks.items()}
+        people = adapt.adapt(tpl, head.scan_verts, head.scan_tris, clicks, markers=head.markers)
         fits = [adapt.adapt(tpl, head.scan_verts, head.scan_tris, c, markers=head.markers).verts_scan
-                for c in (exact, clicks)]
-        r = [measure(tpl, head, v, seen, query)["corr_rms"] for v in (affine, tps, *fits)]
+                for c in (exact, eyes)]
+        # the affine column's map (template -> scan frame) in the fit's calibrated frame, as level 0
+        sim = people.similarity
+        shift = sim.apply(A[3][None])[0]
+        matrix = sim.apply(A[:3] + A[3]).T - shift[:, None]
+        with _level0_as(level0.AffineMap(matrix, shift)):
+            fits.append(adapt.adapt(tpl, head.scan_verts, head.scan_tris, clicks, markers=head.markers).verts_scan)
+        r = [measure(tpl, head, v, seen, query)["corr_rms"] for v in (affine, tps, *fits, people.verts_scan)]
         rows.append(r)
-        print(f"{seed:4d} {r[0]:7.2f} {r[1]:7.2f} {len(skin):4d} {r[2]:10.2f} {r[3]:14.2f}", flush=True)
+        print(f"{seed:4d} {r[0]:7.2f} {r[1]:7.2f} {len(skin):4d} {r[2]:10.2f} {r[3]:9.2f} {r[4]:11.2f} {r[5]:14.2f}",
+              flush=True)
     med = np.median(rows, axis=0)
-    print(f"{'median':>4s} {med[0]:7.2f} {med[1]:7.2f} {'':4s} {med[2]:10.2f} {med[3]:14.2f}")
+    print(f"{'median':>4s} {med[0]:7.2f} {med[1]:7.2f} {'':4s} {med[2]:10.2f} {med[3]:9.2f} {med[4]:11.2f} {med[5]:14.2f}")
+
+
+EYE_CORNERS = ("3.7", "3.8", "3.11", "3.12")
+
+
+@contextlib.contextmanager
+def _level0_as(affine):
+    """Within: adapt's level 0 is the given affine map (the oracle column level0), not a fit."""
+    fitted = level0.global_affine
+
+    def given(fit, *_args, **_kwargs):
+        fit.functions = [affine]
+        return affine
+
+    level0.global_affine = given
+    try:
+        yield
+    finally:
+        level0.global_affine = fitted
 
 
 def big():
