@@ -105,10 +105,10 @@ def test_bone_mapped_into_the_mouth_comes_out_through_its_lining(tpl):
 
 
 def test_a_visible_skin_vertex_a_sliver_inside_the_bone_is_lifted_out_and_a_deep_one_is_not(tpl):
-    """bone.lift_visible_skin, the transfer's last guarantee, on the template: a visible forehead
+    """lift.lift_visible_skin, the transfer's last guarantee, on the template: a visible forehead
     vertex pushed 0.2 mm into the cranium comes out along its normal by under 0.5 mm; one pushed
     3 mm in is left where it is and named (a fit gone wrong, not a sliver of rim)."""
-    from headadapt_addon.core.anatomy.bone import lift_visible_skin
+    from headadapt_addon.core.anatomy.lift import lift_visible_skin
 
     skin, cr, md = (tpl.parts[k].verts for k in ("skin", "cranium", "mandible"))
     bone = np.vstack([cr, md])
@@ -130,11 +130,11 @@ def test_a_visible_skin_vertex_a_sliver_inside_the_bone_is_lifted_out_and_a_deep
 
 
 def test_a_visible_skin_vertex_a_millimetre_inside_the_bone_comes_out_with_its_neighbours(tpl):
-    """bone.lift_visible_skin beyond the 0.5 mm sliver: a visible forehead vertex 1.2 mm inside the
+    """lift.lift_visible_skin beyond the 0.5 mm sliver: a visible forehead vertex 1.2 mm inside the
     cranium (a statue's lid on the orbit's rim ends so on some processors) comes out through the bone's
     nearest face with the skin round it along, no skin triangle turned over, every vertex that moved
     within the bump's fading rings, and no visible vertex left inside."""
-    from headadapt_addon.core.anatomy.bone import lift_visible_skin
+    from headadapt_addon.core.anatomy.lift import lift_visible_skin
 
     skin, cr, md = (tpl.parts[k].verts for k in ("skin", "cranium", "mandible"))
     bone = np.vstack([cr, md])

@@ -229,7 +229,7 @@ def test_adapts_onto_a_bearded_bust_in_its_own_units(demosthenes):
 @pytest.mark.parametrize("bust", ["demosthenes", "nefertiti"])
 def test_no_visible_skin_inside_a_bust_s_transferred_skull(bust, request):
     # a lid vertex of Demosthenes' right eye ended 0.016 mm inside the orbit's rim, where the bone by the
-    # socket is frozen: the transfer's last step (bone.lift_visible_skin) lifts such slivers out
+    # socket is frozen: the transfer's last step (lift.lift_visible_skin) lifts such slivers out
     tpl, res, ana = request.getfixturevalue(bust)
     visible = ~tpl.hidden
     bone = np.vstack([ana.parts["cranium"], ana.parts["mandible"]])

@@ -8,7 +8,8 @@ from .. import mpeg4
 from ..adapt.options import AdaptResult
 from ..mesh import geometry, winding
 from ..template import Template
-from .bone import clear_visible_skin, keep_inside, lift_visible_skin, relax_cleared, unrelax_under_skin
+from .bone import clear_visible_skin, keep_inside, relax_cleared, unrelax_under_skin
+from .lift import lift_visible_skin
 from .model import Anatomy
 from .rigid import RIGID_FDPS, rigid_from_fdps, seat_orbits, surface_point
 
