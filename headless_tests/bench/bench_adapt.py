@@ -4,6 +4,7 @@
     ./ha bench adapt --real            # the real scans in ../shared/scans, clicks in headless_tests/data
     ./ha bench adapt --oracle          # the floor: maps that know the truth, and HeadAdapt given part of it
     ./ha bench adapt --seeds 0-3 --identity 0 --targets 0   # heads whose truth is the template itself
+    ./ha bench adapt --seeds 0,3 --regions   # where the error lies: along the skin by region, level by level
 
 Seeds 100-107 are the REPORTING set (the default): figures quoted anywhere come from them. Seeds
 0-49 may be used for tuning (parameters, thresholds, ideas); never tune on 100-107, or the figures
@@ -303,6 +304,41 @@ def _level0_as(affine):
         level0.global_affine = fitted
 
 
+REGIONS = ("forehead", "brow_l", "brow_r", "nose", "cheek_l", "cheek_r", "upper_lip", "lower_lip", "chin_jaw")
+
+
+def _along_by_region(tpl, head, verts_scan, normal, seen):
+    """The error's part tangent to the true surface (normal: its vertex normals), RMS by REGIONS, mm."""
+    e = (verts_scan - head.true_template) / head.similarity[0] * 1000
+    e -= np.einsum("ij,ij->i", e, normal)[:, None] * normal
+    return " ".join(f"{np.sqrt(np.mean(np.sum(e[seen & tpl.region_mask(r)] ** 2, axis=1))):9.2f}" for r in REGIONS)
+
+
+def regions(args):
+    """Per head and click set: the correspondence error ALONG the skin (its part tangent to the true
+    surface), RMS by face region over the seen face, of HeadAdapt's map after level 0, 1, .. (the
+    template's vertices moved by the levels so far, not yet put on the scan) and of nricp_amberg's."""
+    tpl = load_template()
+    face = testheads.face_mask(tpl)
+    print(f"\n== error along the skin by region, mm of the true head, seen face ==\n{'seed':>4s} {'clk':>3s} "
+          f"{'after':>9s} " + " ".join(f"{r:>9s}" for r in REGIONS))
+    for seed in args.seeds:
+        head = testheads.make_head(seed, style=args.style, **_identity(args))
+        seen = face & head.true_on_scan
+        normal = geometry.vertex_normals(head.true_template, tpl.skin.tris)
+        along = lambda verts_scan: _along_by_region(tpl, head, verts_scan, normal, seen)  # noqa: B023 (used in this pass)
+        for name in args.clicks.split(","):
+            clicks = {k: head.fdp_clicks[k] for k in CLICK_SETS[name] if k in head.fdp_clicks}
+            out, res = run_methods(tpl, head.scan_verts, head.scan_tris, clicks, markers=head.markers,
+                                   nricp=not args.no_nricp)
+            V = tpl.skin.verts
+            for k in range(1, len(res.functions) + 1):
+                moved = V + sum(f(V) for f in res.functions[:k])
+                print(f"{seed:4d} {name:>3s} {'level ' + str(k - 1):>9s} " + along(res.to_scan(moved)))
+            if out.get("nricp_amberg", (None,))[0] is not None:
+                print(f"{seed:4d} {name:>3s} {'nricp':>9s} " + along(out["nricp_amberg"][0]), flush=True)
+
+
 def big():
     """Time HeadAdapt on a ~200k-vertex head (first, before the peers load the machine)."""
     tpl = load_template()
@@ -333,6 +369,8 @@ def main(argv=None):
     parser.add_argument("--real", action="store_true", help="the real scans in ../shared/scans instead")
     parser.add_argument("--big", action="store_true", help="also time a ~200k-vertex head")
     parser.add_argument("--oracle", action="store_true", help="the floor: maps that know the truth (no peers)")
+    parser.add_argument("--regions", action="store_true",
+                        help="where the error lies: along the skin by face region, after each level (and nricp's)")
     parser.add_argument("--no-nricp", action="store_true")
     parser.add_argument("--identity", type=float, default=None,
                         help="scale of the heads' identity morph (scan style; 0: the truth is the template itself)")
@@ -346,6 +384,8 @@ def main(argv=None):
         oracle(args)
     elif args.real:
         real(args)
+    elif args.regions:
+        regions(args)
     else:
         synthetic(args)
 
