@@ -26,26 +26,13 @@ def _bump(tpl, skin, at, to, rings=3):
     return skin + d
 
 
-def lift_visible_skin(tpl, skin, cranium, mandible, most=0.0005, clearance=0.0001, bone_inside=None,
-                      farthest=0.002):
-    """The last guarantee of the transfer: a visible skin vertex still inside the bone after the bone
-    was cleared (clear_visible_skin freezes bone by a pocket: a lid at the orbit's opening) steps out
-    along its own outward normal, at most `most` (0.5 mm: a sliver of bone rim, not a fit gone wrong),
-    to `clearance` outside; where that way is longer (bone folded round the point: a statue's lid on
-    the orbit's rim), through the bone's nearest face if that is within `most`, else within `farthest`
-    (2 mm) if no skin triangle turns over for it: Nefertiti's carved left lid, on the orbit's rim,
-    ended 0.06 mm inside on one machine and 0.6 to 1.6 mm on another (the arithmetic's rounding
-    differs between processors, and the bone's clearing before this step amplifies it). Returns
-    (skin (n,3), the vertices moved, those still inside)."""
-    from ..mesh.geometry import face_normals, folded, vertex_normals
-    from ..mesh.spatial import MeshQuery
+def _lift_near(tpl, skin, bad, inside, query, most, clearance):
+    """The visible skin vertices `bad` inside the bone moved out where that is short (within `most`):
+    along their own outward normal, else through the bone's nearest face. Returns (skin (n,3), the
+    vertices moved, the rest, their nearest outside points (k,3) through the bone's faces, and how
+    far those are (k,))."""
+    from ..mesh.geometry import face_normals, vertex_normals
 
-    bone = np.vstack([cranium, mandible])
-    inside = (winding.FastWinding(bone, tpl.skull_tris) if bone_inside is None else bone_inside).refit(bone)
-    visible = np.flatnonzero(~tpl.hidden)
-    bad = visible[inside(skin[visible]) > 0.5]
-    if not len(bad):
-        return skin, bad, bad
     normals = vertex_normals(skin, tpl.skin.tris)[bad]
     lo, hi = np.zeros(len(bad)), np.full(len(bad), most)
     out_at_most = inside(skin[bad] + most * normals) <= 0.5
@@ -56,22 +43,51 @@ def lift_visible_skin(tpl, skin, cranium, mandible, most=0.0005, clearance=0.000
     skin = skin.copy()
     move, rest = bad[out_at_most], bad[~out_at_most]
     skin[move] += (np.minimum(hi[out_at_most] + clearance, most))[:, None] * normals[out_at_most]
-    if len(rest):                             # out through the bone's nearest face
-        near, face, dist = MeshQuery(bone, tpl.skull_tris, backend="numpy").closest_points(skin[rest])
-        to = near + (clearance + 1e-6) * face_normals(bone, tpl.skull_tris)[face]
-        out = inside(to) <= 0.5
-        ok = (dist <= most) & out
-        skin[rest[ok]] = to[ok]
-        move = np.concatenate([move, rest[ok]])
-        # farther, up to `farthest`: the skin round them taken along (a bump fading over a few rings,
-        # so the lid's small triangles do not turn over), kept if nothing folds that did not before
-        far = ~ok & out & (dist <= farthest)
-        if far.any():
-            trial = _bump(tpl, skin, rest[far], to[far])
-            new = np.setdiff1d(folded(tpl.skin.verts, trial, tpl.skin.tris), folded(tpl.skin.verts, skin, tpl.skin.tris))
-            inside_trial, inside_now = ((inside(x[visible]) > 0.5).sum() for x in (trial, skin))
-            if not len(new) and inside_trial < inside_now:
-                move = np.union1d(move, np.flatnonzero(np.any(trial != skin, axis=1)))
-                skin = trial
-        rest = visible[inside(skin[visible]) > 0.5]
-    return skin, move, rest
+    if not len(rest):
+        return skin, move, rest, np.zeros((0, 3)), np.zeros(0)
+    near, face, dist = query.closest_points(skin[rest])          # out through the bone's nearest face
+    to = near + (clearance + 1e-6) * face_normals(query.verts, query.tris)[face]
+    dist = np.where(inside(to) <= 0.5, dist, np.inf)
+    ok = dist <= most
+    skin[rest[ok]] = to[ok]
+    return skin, np.concatenate([move, rest[ok]]), rest[~ok], to[~ok], dist[~ok]
+
+
+def lift_visible_skin(tpl, skin, cranium, mandible, most=0.0005, clearance=0.0001, bone_inside=None,
+                      farthest=0.002):
+    """The last guarantee of the transfer: a visible skin vertex still inside the bone after the bone
+    was cleared (clear_visible_skin freezes bone by a pocket: a lid at the orbit's opening) steps out
+    along its own outward normal, at most `most` (0.5 mm: a sliver of bone rim, not a fit gone wrong),
+    to `clearance` outside; where that way is longer (bone folded round the point: a statue's lid on
+    the orbit's rim), through the bone's nearest face if that is within `most`, else within `farthest`
+    (2 mm) with the skin round it taken along, if no skin triangle turns over for it and fewer visible
+    vertices stay inside (the neighbours it drags back in lifted again first): Nefertiti's carved left
+    lid, on the orbit's rim, ended 0.06 mm inside on one machine and 0.6 to 1.6 mm on another (the
+    arithmetic's rounding differs between processors and numpy versions, and the bone's clearing
+    before this step amplifies it). Returns (skin (n,3), the vertices moved, those still inside)."""
+    from ..mesh.geometry import folded
+    from ..mesh.spatial import MeshQuery
+
+    bone = np.vstack([cranium, mandible])
+    inside = (winding.FastWinding(bone, tpl.skull_tris) if bone_inside is None else bone_inside).refit(bone)
+    visible = np.flatnonzero(~tpl.hidden)
+    bad = visible[inside(skin[visible]) > 0.5]
+    if not len(bad):
+        return skin, bad, bad
+    query = MeshQuery(bone, tpl.skull_tris, backend="numpy")
+    lifted, move, rest, to, dist = _lift_near(tpl, skin, bad, inside, query, most, clearance)
+    # farther, up to `farthest`: the skin round them taken along (a bump fading over a few rings, so the
+    # lid's small triangles do not turn over), the neighbours it pushed in lifted again, kept if nothing
+    # folds that did not before and fewer visible vertices stay inside
+    far = dist <= farthest
+    if far.any():
+        trial = _bump(tpl, lifted, rest[far], to[far])
+        again = visible[inside(trial[visible]) > 0.5]
+        if len(again):
+            trial = _lift_near(tpl, trial, again, inside, query, most, clearance)[0]
+        new = np.setdiff1d(folded(tpl.skin.verts, trial, tpl.skin.tris), folded(tpl.skin.verts, lifted, tpl.skin.tris))
+        inside_trial, inside_now = ((inside(x[visible]) > 0.5).sum() for x in (trial, lifted))
+        if not len(new) and inside_trial < inside_now:
+            move = np.union1d(move, np.flatnonzero(np.any(trial != lifted, axis=1)))
+            lifted = trial
+    return lifted, move, visible[inside(lifted[visible]) > 0.5]
