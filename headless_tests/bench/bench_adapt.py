@@ -326,17 +326,18 @@ def regions(args):
         head = testheads.make_head(seed, style=args.style, **_identity(args))
         seen = face & head.true_on_scan
         normal = geometry.vertex_normals(head.true_template, tpl.skin.tris)
-        along = lambda verts_scan: _along_by_region(tpl, head, verts_scan, normal, seen)  # noqa: B023 (used in this pass)
         for name in args.clicks.split(","):
             clicks = {k: head.fdp_clicks[k] for k in CLICK_SETS[name] if k in head.fdp_clicks}
             out, res = run_methods(tpl, head.scan_verts, head.scan_tris, clicks, markers=head.markers,
                                    nricp=not args.no_nricp)
-            V = tpl.skin.verts
-            for k in range(1, len(res.functions) + 1):
-                moved = V + sum(f(V) for f in res.functions[:k])
-                print(f"{seed:4d} {name:>3s} {'level ' + str(k - 1):>9s} " + along(res.to_scan(moved)))
+            moved = tpl.skin.verts.copy()
+            for k, f in enumerate(res.functions):          # the levels so far, one added at a time
+                moved += f(tpl.skin.verts)
+                print(f"{seed:4d} {name:>3s} {'level ' + str(k):>9s} "
+                      + _along_by_region(tpl, head, res.to_scan(moved), normal, seen))
             if out.get("nricp_amberg", (None,))[0] is not None:
-                print(f"{seed:4d} {name:>3s} {'nricp':>9s} " + along(out["nricp_amberg"][0]), flush=True)
+                print(f"{seed:4d} {name:>3s} {'nricp':>9s} "
+                      + _along_by_region(tpl, head, out["nricp_amberg"][0], normal, seen), flush=True)
 
 
 def big():
