@@ -43,7 +43,12 @@ class AdaptOptions:
     feature_weight: float = 1.0         # weight of a feature-mesh pair (a surface pair weighs 1)
     curvature_weight: float = 1.0       # weight of a curvature pair
     affine_iterations: int = 8          # ICP rounds of the whole-skin affine map before the clicks' RBF
-    affine_skip: tuple = ()             # regions the affine map does not fit
+    affine_skip: tuple = ("scalp", "forehead")  # regions the affine map does not fit: their shape
+                                        # differs among people in ways no affine map follows (a sloping
+                                        # forehead, a long skull), and fitted to them the map tilted the
+                                        # whole face a few degrees, more with every round
+    affine_along_normal: bool = True    # the affine map's pairs lie along the template's normals (rays),
+                                        # not at closest points: no sideways pull on the face
     affine_ridge: float = 1e-3          # how firmly the affine map's linear part is held to the identity
     rays_from_level: int = 2            # from this level on, pairs along the template's normal (sec 4.1)
     fold_rounds: int = 2                # refits of a level without pairs around the triangles it folded
