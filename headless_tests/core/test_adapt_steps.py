@@ -84,7 +84,7 @@ def test_a_skull_sloping_back_does_not_tilt_the_face_s_affine_map(tpl):
     # a head 4% wider and 8% deeper whose forehead and skull, from 2 cm above the eyes, slope back
     # (a shape no affine map follows): fitted to the whole skin by closest points, the affine map
     # squashed the face 4% and sheared it; fitted without the scalp and forehead, along the template's
-    # normals (AdaptOptions.affine_skip, affine_along_normal), it keeps the face's map
+    # normals (AdaptOptions.affine_weights, affine_along_normal), it keeps the face's map
     fdps = tpl.fdp_points()
 
     def deform(x):
@@ -98,7 +98,7 @@ def test_a_skull_sloping_back_does_not_tilt_the_face_s_affine_map(tpl):
     clicks = {k: deform(fdps[k][None])[0] for k in mpeg4.CLICKS_8}
     face = tpl.region_mask(*(r for r in FACE_REGIONS if r != "forehead"))
     errors = {}
-    for name, kw in (("face", {}), ("whole skin", {"affine_skip": (), "affine_along_normal": False})):
+    for name, kw in (("face", {}), ("whole skin", {"affine_weights": (), "affine_along_normal": False})):
         fit, names, P, Q = _fit(tpl, (truth, tris, truth, clicks), **kw)
         f = global_affine(fit, Pairs(P, Q, np.full(len(P), 20.0)), fit.threshold, 8)
         errors[name] = float(np.sqrt(np.mean(np.sum((tpl.skin.verts + f(tpl.skin.verts) - truth)[face] ** 2,
@@ -122,8 +122,8 @@ def test_surface_pairs_lie_on_the_scan_and_respect_reach(tpl, case):
 
 def test_feature_mesh_pairs_split_triangles_and_pair_both_surfaces(tpl, case):
     # the case's head is an affine map of the template's whole skin (and a cheek bump): level 0 fits
-    # all of it, scalp, forehead and neck included (which scan-like heads leave out: AdaptOptions)
-    fit, names, P, Q = _fit(tpl, case, affine_skip=())
+    # all of it alike, scalp, forehead and neck included (AdaptOptions.affine_weights)
+    fit, names, P, Q = _fit(tpl, case, affine_weights=())
     level_zero(fit, Pairs(P, Q, np.ones(len(P))))
     mesh = {"q": Q.copy(), "t": feature_mesh(P, tpl.skin.verts.mean(axis=0)), "dead": None}
     mesh["dead"] = np.zeros(len(mesh["t"]), bool)

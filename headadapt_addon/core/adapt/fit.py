@@ -63,8 +63,10 @@ class Fit:
         self.functions = []
         self.level0_memo = None     # (the clicks' bytes, level 0's map) of the last level-0 fit
         self.quiet = np.zeros(len(self.V), bool)     # vertices a level leaves to its smoothness term
-        # the global affine map is fitted to these regions (a scan's neck is cut and posed anyhow)
-        self.affine_mask = ~tpl.region_mask(*options.affine_skip)
+        # each skin vertex's weight in the global affine map (AdaptOptions.affine_weights)
+        self.affine_weight = np.ones(len(self.V))
+        for region, weight in options.affine_weights:
+            self.affine_weight[tpl.region_mask(region)] = weight
         self._at_skin = {}
         self.warm = {}              # last coefficients per support: the next ICP round starts there
         self.factor = {}            # a sparse LU per support, once a level's system needed one

@@ -33,15 +33,16 @@ def global_affine(fit: Fit, clicks: Pairs, reach: float, iterations: int, ridge:
     """Level 0, first half: the affine map that best takes the template skin onto the scan (robust
     weights) and the clicks onto their places, by a few ICP rounds from the calibrated pose. The
     clicks sit on the front of the face and cannot say how deep or wide the head is; the scan can.
-    The map's linear part is held near the identity by a small ridge. The skin it fits leaves out
-    the regions in options.affine_skip (the scalp and forehead by default), and its pairs lie
-    along the template's normals (options.affine_along_normal): fitted to the whole skin by closest
-    points, the map went on tilting the face with every round, away from the best affine map even
-    when started there (./ha bench adapt, README "What is different")."""
+    The map's linear part is held near the identity by a small ridge. The skin's regions weigh
+    as options.affine_weights say (by default the scalp and forehead not at all, the posed neck a
+    quarter), and its pairs lie along the template's normals (options.affine_along_normal): fitted
+    to the whole skin by closest points, the map went on tilting the face with every round, away
+    from the best affine map even when started there (./ha bench adapt, README "What is different")."""
     centre = fit.V.mean(axis=0)
     fit.functions = [AffineMap(np.eye(3), np.zeros(3))]
     for _ in range(iterations):
-        pairs = surface_pairs(fit, reach, fit.options.affine_along_normal, mask=fit.affine_mask) + clicks
+        pairs = surface_pairs(fit, reach, fit.options.affine_along_normal, mask=fit.affine_weight > 0)
+        pairs = Pairs(pairs.p, pairs.q, pairs.w * fit.affine_weight[pairs.vertex], pairs.vertex) + clicks
         X = np.c_[pairs.p - centre, np.ones(len(pairs))]
         XtW = X.T * pairs.w
         reg = ridge * pairs.w.sum() * np.diag([np.mean((fit.V - centre) ** 2)] * 3 + [0.0])
