@@ -201,8 +201,12 @@ def test_a_bug_in_one_scan_is_caught_logged_with_its_traceback_and_the_others_go
 
 
 def _start(src, out, *extra):
+    # Ctrl-C's default disposition for the child: a test run started in the background by a shell
+    # without job control inherits SIGINT ignored, and Python then installs no handler for it (the
+    # SIGINT case timed out so on a CI run started as `(bash .ci/run &)`)
     return subprocess.Popen(batch_cmd("folder", "--folder", src, "--out", out, "--levels", "1", "--jobs", "1", *extra),
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT)
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
 
 
 def _wait_for(condition, seconds):

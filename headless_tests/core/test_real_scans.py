@@ -67,8 +67,7 @@ def test_tissue_depths_on_the_ct_are_those_of_the_transferred_skull(ct):
     assert len(rows) >= 20
     err = np.array([abs(ours - real) for _, _, real, ours in rows])
     # the transferred skull's depth against this person's real depth at each landmark, mean of 25 (3.93
-    # mm with level 0 fitted to the whole skin, 3.86 fitted without the scalp and forehead and with
-    # the neck at a quarter). Each
+    # mm with level 0 fitted to the whole skin, 3.91 fitted without the scalp and forehead). Each
     # landmark's "real" depth is measured from where the adapted skin puts it. The median used to be
     # asserted (3.25 mm since the unfold's harmonic fallback lets the pressed bone settle, 4.2 before;
     # 3.58 after the levels' rounds were fixed, 3.62 with the lip seam's band narrowed), but the sorted

@@ -33,11 +33,11 @@ def global_affine(fit: Fit, clicks: Pairs, reach: float, iterations: int, ridge:
     """Level 0, first half: the affine map that best takes the template skin onto the scan (robust
     weights) and the clicks onto their places, by a few ICP rounds from the calibrated pose. The
     clicks sit on the front of the face and cannot say how deep or wide the head is; the scan can.
-    The map's linear part is held near the identity by a small ridge. The skin's regions weigh
-    as options.affine_weights say (by default the scalp and forehead not at all, the posed neck a
-    quarter), and its pairs lie along the template's normals (options.affine_along_normal): fitted
-    to the whole skin by closest points, the map went on tilting the face with every round, away
-    from the best affine map even when started there (./ha bench adapt, README "What is different")."""
+    The map's linear part is held near the identity by a small ridge. The skin's regions weigh as
+    options.affine_weights say (by default the scalp and forehead not at all), and its pairs lie
+    along the template's normals (options.affine_along_normal): fitted to the whole skin by closest
+    points, the map went on tilting the face with every round, away from the best affine map even
+    when started there (./ha bench adapt, README "What is different")."""
     centre = fit.V.mean(axis=0)
     fit.functions = [AffineMap(np.eye(3), np.zeros(3))]
     for _ in range(iterations):

@@ -43,12 +43,13 @@ class AdaptOptions:
     feature_weight: float = 1.0         # weight of a feature-mesh pair (a surface pair weighs 1)
     curvature_weight: float = 1.0       # weight of a curvature pair
     affine_iterations: int = 8          # ICP rounds of the whole-skin affine map before the clicks' RBF
-    affine_weights: tuple = (("scalp", 0.0), ("forehead", 0.0), ("neck", 0.25))
+    affine_weights: tuple = (("scalp", 0.0), ("forehead", 0.0))
                                         # (region, weight) in the affine map (others weigh 1): the skull's
                                         # shape above the brows differs among people in ways no affine map
-                                        # follows (a sloping forehead, a long skull), and a scan's neck is
-                                        # posed and cut anyhow; fitted to them at full weight the map tilted
-                                        # the whole face a few degrees, more with every round
+                                        # follows (a sloping forehead, a long skull); fitted to it the map
+                                        # tilted the whole face a few degrees, more with every round. (The
+                                        # posed neck pulls too: at 0.25 the tuning heads gained, but the
+                                        # real CT's face lay 1.08 mm from its skin instead of 0.83)
     affine_along_normal: bool = True    # the affine map's pairs lie along the template's normals (rays),
                                         # not at closest points: no sideways pull on the face
     affine_ridge: float = 1e-3          # how firmly the affine map's linear part is held to the identity
