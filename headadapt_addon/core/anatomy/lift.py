@@ -71,23 +71,28 @@ def lift_visible_skin(tpl, skin, cranium, mandible, most=0.0005, clearance=0.000
     bone = np.vstack([cranium, mandible])
     inside = (winding.FastWinding(bone, tpl.skull_tris) if bone_inside is None else bone_inside).refit(bone)
     visible = np.flatnonzero(~tpl.hidden)
-    bad = visible[inside(skin[visible]) > 0.5]
+
+    def inside_of(x):                         # the visible vertices of skin x inside the bone
+        return visible[inside(x[visible]) > 0.5]
+
+    bad = inside_of(skin)
     if not len(bad):
         return skin, bad, bad
     query = MeshQuery(bone, tpl.skull_tris, backend="numpy")
     lifted, move, rest, to, dist = _lift_near(tpl, skin, bad, inside, query, most, clearance)
+    left = inside_of(lifted)
     # farther, up to `farthest`: the skin round them taken along (a bump fading over a few rings, so the
     # lid's small triangles do not turn over), the neighbours it pushed in lifted again, kept if nothing
     # folds that did not before and fewer visible vertices stay inside
     far = dist <= farthest
     if far.any():
         trial = _bump(tpl, lifted, rest[far], to[far])
-        again = visible[inside(trial[visible]) > 0.5]
+        again = inside_of(trial)
         if len(again):
             trial = _lift_near(tpl, trial, again, inside, query, most, clearance)[0]
+            again = inside_of(trial)
         new = np.setdiff1d(folded(tpl.skin.verts, trial, tpl.skin.tris), folded(tpl.skin.verts, lifted, tpl.skin.tris))
-        inside_trial, inside_now = ((inside(x[visible]) > 0.5).sum() for x in (trial, lifted))
-        if not len(new) and inside_trial < inside_now:
+        if not len(new) and len(again) < len(left):
             move = np.union1d(move, np.flatnonzero(np.any(trial != lifted, axis=1)))
-            lifted = trial
-    return lifted, move, visible[inside(lifted[visible]) > 0.5]
+            lifted, left = trial, again
+    return lifted, move, left
