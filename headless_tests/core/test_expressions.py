@@ -71,7 +71,7 @@ def test_a_lid_fap_at_its_nominal_amplitude_closes_the_eye(tpl, lid_keys):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("seed", [7, 3, 11])
+@pytest.mark.parametrize("seed", [7, 3, 11, 9])     # 9: its right upper lid alone stayed 3.9 mm open
 def test_lids_close_the_eye_on_adapted_heads(tpl, legacy_heads, seed):
     _, _, ana = legacy_heads(seed)
     m = build_skin(tpl, ana)
@@ -86,22 +86,22 @@ def test_lids_close_the_eye_on_adapted_heads(tpl, legacy_heads, seed):
     for side, name in enumerate(("close_t_l_eyelid", "close_t_r_eyelid")):
         x = m.equilibrium(drive.FAP_SKIN[name])
         assert len(m.flipped(x)) == 0
-        # the upper lid alone closes the eye too: on all three heads since the lip seam's pair-free
-        # band was narrowed to 1.5 mm (gaps 0.00 mm; the fit of the whole face moved with it). Before,
-        # one head's left upper lid stayed open, an xfail (seed 7's 6.8 mm; seed 3's 5.0 mm earlier):
-        # the canthus the plate finds lay 4.8 mm lateral of the clicked inner corner 3.11, the turn
-        # ramped from 0 to 41% across one 3 mm triangle, which folded, and the unfold around the fold
-        # opened the margin back up. Should it come back, that is where to look.
+        # the upper lid alone closes the eye too: on these four heads, not on every head (README:
+        # 9 of legacy heads 0-11; on 0, 2 and 8 the turn, fading along the fissure, takes a lid vertex
+        # by the outer canthus down past its less-turned neighbours, the triangle folds, and relaxing
+        # it reopens the lid; seed 7 with level 1 paired along normals too). Head 9's right one
+        # stayed 3.9 mm open until a fold's corners were smoothed in place before its displacement
+        # was relaxed (contact.UNFOLD_SMOOTH).
         assert bench.lid_gaps(tpl, x)[side] <= CLOSED, (seed, name, bench.lid_gaps(tpl, x))
 
 
 
 @pytest.mark.slow
-def test_a_blink_closes_the_eye_where_a_fold_at_the_canthus_outlives_its_relaxation(tpl, legacy_heads):
-    # legacy head 8: blinking, a tiny triangle at the left inner canthus stayed folded through one
-    # relaxation of the displacement around it; the patch then grew ring by ring over the lid margin
-    # and opened the eye 3.6 mm. Its corners' positions smoothed first (contact.UNFOLD_SMOOTH) it
-    # unfolds where it is. (The upper lid alone still leaves this head's eyes 3.5 mm open: README.)
+def test_a_blink_closes_the_eye_where_a_triangle_at_the_canthus_folds(tpl, legacy_heads):
+    # legacy head 8: blinking, a tiny triangle at the left inner canthus stayed folded through the
+    # relaxations of the displacement around it; the patch grew ring by ring over the lid margin and
+    # opened the eye 3.6 mm. Its corners' positions smoothed first (contact.UNFOLD_SMOOTH) it unfolds
+    # where it is. (The upper lid alone still leaves this head's eyes 3.5 mm open: README.)
     _, _, ana = legacy_heads(8)
     m = build_skin(tpl, ana)
     for side, recipe in enumerate(drive.BLINK.values()):

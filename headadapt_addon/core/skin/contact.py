@@ -16,8 +16,8 @@ from ..tol import TINY
 UNFOLD_STEPS = 80                     # most local relaxation steps against folded triangles
 UNFOLD_RINGS = 8                      # rings relaxed around a fold: one more per step it stays folded, up
                                       # to this many; then the patch also gives back its displacement
-UNFOLD_SMOOTH = 10                    # a fold that outlived a relaxation: its corners' positions first
-                                      # take this many steps to their neighbours' mean (a canthus's tiny
+UNFOLD_SMOOTH = 10                    # a fold's corners' positions first take this many steps to their
+                                      # neighbours' mean, kept if no fold is left (a canthus's tiny
                                       # triangles; relaxed as displacement, the patch grew over the lid
                                       # margin and opened a blinking eye 3.6 mm)
 UNFOLD_GIVE = 0.99                    # share of the displacement kept per Jacobi step, to the power of the
@@ -173,8 +173,8 @@ class ContactMixin:
         persists, up to UNFOLD_RINGS, after which the patch also gives back displacement
         (UNFOLD_GIVE). Relaxing the whole patch ever touched, grown every step, spread a last
         stubborn fold's relaxation over the whole face and flattened the key (a smile on a
-        generated head to 0.4 of its size). A fold that outlives one relaxation first has its
-        corners' positions smoothed (UNFOLD_SMOOTH), kept if that leaves no fold.
+        generated head to 0.4 of its size). Each step first smooths the folded triangles' corners'
+        positions (UNFOLD_SMOOTH), kept if that leaves no fold; else the displacement is relaxed.
         """
         rest = self.rest[: self.n]
         age = np.zeros(self.n)
@@ -200,17 +200,16 @@ class ContactMixin:
                 patch |= (self.adjacency @ patch.astype(float)) > 0
             keep = UNFOLD_GIVE ** max(stuck - UNFOLD_RINGS, 0.0)
             before = x.copy()
-            if stuck >= 2:
-                for _ in range(UNFOLD_SMOOTH):
-                    x[corners] = (self.adjacency @ x)[corners]
-                if not len(self.flipped(x)):
-                    moved = np.zeros(self.n, bool)
-                    moved[corners] = True
-                    moved |= self.adjacency @ moved.astype(float) > 0
-                    x = self._retract_from_bone(self._keep_out_of_bone(x, contact, moved), contact, moved)
-                    changed |= (x != before).any(axis=1)
-                    continue
-                x = before.copy()
+            for _ in range(UNFOLD_SMOOTH):
+                x[corners] = (self.adjacency @ x)[corners]
+            if not len(self.flipped(x)):
+                moved = np.zeros(self.n, bool)
+                moved[corners] = True
+                moved |= self.adjacency @ moved.astype(float) > 0
+                x = self._retract_from_bone(self._keep_out_of_bone(x, contact, moved), contact, moved)
+                changed |= (x != before).any(axis=1)
+                continue
+            x = before.copy()
             for _ in range(10):
                 u = x - rest
                 x[patch] = rest[patch] + keep * (self.adjacency @ u)[patch]
