@@ -211,6 +211,7 @@ def render_bench(out, tmp, seed=106):
     from headadapt_addon.blender import bridge
     from headadapt_addon.blender.view import heat_colours
     from headadapt_addon.core import adapt
+    from headadapt_addon.core.mesh import spatial
     from tools import testheads
 
     sys.path.insert(0, str(ROOT / "headless_tests" / "bench"))
@@ -240,11 +241,12 @@ def render_bench(out, tmp, seed=106):
         return obj
 
     figures = {}
+    query = spatial.MeshQuery(head.scan_verts, head.scan_tris, backend=testheads.BACKEND)
     objs = [mesh("scan", sim.apply(head.scan_verts), head.scan_tris,
                  np.tile([0.75, 0.75, 0.75, 1.0], (len(head.scan_verts), 1)))]
     for name, verts in (("headadapt", result.verts_scan), ("nricp_amberg", nricp)):
+        figures[name] = bench_adapt.measure(tpl, head, verts, seen & testheads.face_mask(tpl), query)["corr_rms"]
         err = np.linalg.norm(verts - head.true_template, axis=1) / scale * 1000
-        figures[name] = float(np.sqrt(np.mean(err[seen & testheads.face_mask(tpl)] ** 2)))
         objs.append(mesh(name, sim.apply(verts), tpl.skin.tris, heat_colours(np.where(seen, err, np.nan), BENCH_LIMIT_MM)))
     v = truth[seen]
     centre = np.array([0.0, v[:, 1].mean(), np.percentile(v[:, 2], 60)])

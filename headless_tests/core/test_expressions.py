@@ -95,7 +95,6 @@ def test_lids_close_the_eye_on_adapted_heads(tpl, legacy_heads, seed):
         assert bench.lid_gaps(tpl, x)[side] <= CLOSED, (seed, name, bench.lid_gaps(tpl, x))
 
 
-
 @pytest.mark.slow
 def test_a_blink_closes_the_eye_where_a_triangle_at_the_canthus_folds(tpl, legacy_heads):
     # legacy head 8: blinking, a tiny triangle at the left inner canthus stayed folded through the
@@ -108,6 +107,7 @@ def test_a_blink_closes_the_eye_where_a_triangle_at_the_canthus_folds(tpl, legac
         x = m.equilibrium(recipe)
         assert bench.lid_gaps(tpl, x)[side] <= CLOSED, (side, bench.lid_gaps(tpl, x))
         assert len(m.flipped(x)) == 0
+
 
 def test_every_shipped_expression_and_viseme_has_an_artist_reference():
     for name in drive.EXPRESSION_RECIPES:

@@ -202,17 +202,14 @@ class ContactMixin:
             before = x.copy()
             for _ in range(UNFOLD_SMOOTH):
                 x[corners] = (self.adjacency @ x)[corners]
-            if not len(self.flipped(x)):
-                moved = np.zeros(self.n, bool)
-                moved[corners] = True
-                moved |= self.adjacency @ moved.astype(float) > 0
-                x = self._retract_from_bone(self._keep_out_of_bone(x, contact, moved), contact, moved)
-                changed |= (x != before).any(axis=1)
-                continue
-            x = before.copy()
-            for _ in range(10):
-                u = x - rest
-                x[patch] = rest[patch] + keep * (self.adjacency @ u)[patch]
+            if len(self.flipped(x)):               # not unfolded in place: relax the patch's displacement
+                x = before.copy()
+                for _ in range(10):
+                    u = x - rest
+                    x[patch] = rest[patch] + keep * (self.adjacency @ u)[patch]
+            else:
+                patch = np.zeros(self.n, bool)
+                patch[corners] = True
             moved = patch | (self.adjacency @ patch.astype(float) > 0)
             x = self._retract_from_bone(self._keep_out_of_bone(x, contact, moved), contact, moved)
             changed |= (x != before).any(axis=1)
