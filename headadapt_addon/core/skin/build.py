@@ -108,11 +108,9 @@ def build(tpl, anatomy=None):
     bone = tuple((queries[k], geometry.face_normals(parts[k], tpl.parts[k].tris),
                   near_opening(parts[k], tpl.parts[k].tris)) for k in ("cranium", "mandible"))
     bone += (np.asarray(parts["cranium"], float), np.asarray(parts["mandible"], float), bone_t)
-    model = SkinModel(bone=bone, tris=tris, folds=geometry.FoldCheck(skin, tris, SLIVER), adjacency=adj,
+    return SkinModel(bone=bone, tris=tris, folds=geometry.FoldCheck(skin, tris, SLIVER), adjacency=adj,
                      n=n, rest=rest, solve=solve, matrix=matrix, forces=forces, bone_k=bone_k, on_mandible=on_mandible,
                      jaw_pivot=np.asarray(jaw_pivot, dtype=float), jaw_axis=jaw_axis, lids=lids,
                      bone_dist=bone_dist, bone_normal=bone_fn, free=~hidden & (rest_gap > 0),
                      clearance=np.minimum(NON_PENETRATION, 0.9 * np.maximum(rest_gap, 0)),
                      mirror=tpl.skin_mirror if anatomy is None else None)
-    model.settle_lids()
-    return model

@@ -10,7 +10,7 @@ from ..tol import TINY
 
 LID_REACH = 1.7                       # the lid's turn fades to 0 at this many margin radii from the eye axis
 LOWER_LID_SHARE = 0.35                # the lower lid at 1 rises this share of the opening (as in a blink)
-LID_PEAK_SHIFT = 0.6                  # the bump's top (3.1) stays this far from the middle of the fissure
+LID_CORNER_POWER = 2.0                # the bump's ends flatten (a steep end folds the rim by the canthus)
 LID_FRONT = 0.6                       # the plate fades out over this many margin radii in front of the eye's centre
 LID_KINEMATIC = 0.2                   # lid skin turned at least this share is put where its plate takes it
                                       # (the solve's springs shear the lid's thin rim and fold it)
@@ -234,10 +234,7 @@ def _lid_plates(tpl, skin, centre, fdps):
     upper = skin[:, 2] > line_z
     # Along the fissure the turn is a smooth bump, 1 at 3.1 and 0 where the margins join (the
     # canthi: the ends of the lid skin's edges from the upper side to the lower near the fissure),
-    # a function of `along` only so the lid's rim (two rows 0.5 mm apart) turns as one. Each side of
-    # 3.1 it is a smoothstep over the whole way to its canthus: the bump (1 - t^2)^2 scaled to 1 at an
-    # off-centre 3.1 and clipped was flat over most of the fissure and fell from 1 to 0.15 within 3 mm
-    # of one canthus, and the close sheared the coarse triangles there over (model.settle_lids).
+    # a function of `along` only so the lid's rim (two rows 0.5 mm apart) turns as one.
     tris = tpl.skin.tris
     e = np.concatenate([tris[:, [0, 1]], tris[:, [1, 2]], tris[:, [2, 0]]])
     e = e[(upper[e[:, 0]] != upper[e[:, 1]]) & lid[e].any(axis=1) & (rel[e, 1] < 0).all(axis=1)
@@ -247,9 +244,7 @@ def _lid_plates(tpl, skin, centre, fdps):
     hi = joined[joined > mid].min(initial=mid + half)
     t = (along - 0.5 * (lo + hi)) / (0.5 * (hi - lo))
     t1 = ((fdps["3.1"] - centre) @ axis - 0.5 * (lo + hi)) / (0.5 * (hi - lo))
-    t1 = float(np.clip(t1, -LID_PEAK_SHIFT, LID_PEAK_SHIFT))
-    s = np.clip(np.where(t < t1, (t + 1.0) / (t1 + 1.0), (1.0 - t) / (1.0 - t1)), 0.0, 1.0)
-    opening = s * s * (3.0 - 2.0 * s)     # smoothstep each side: flat at 3.1 and at the canthi
+    opening = (np.clip(1.0 - t ** 2, 0.0, 1.0) / max(1.0 - t1 ** 2, 0.5)) ** LID_CORNER_POWER
     front = np.clip(-rel[:, 1] / (LID_FRONT * r_margin), 0, 1)      # the socket behind the eye stays
     w = (np.clip((LID_REACH * r_margin - radial) / ((LID_REACH - 1.0) * r_margin), 0, 1)
          * np.clip(opening, 0, 1) * front * lid)

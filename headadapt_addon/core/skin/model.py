@@ -37,12 +37,9 @@ import dataclasses
 import numpy as np
 
 from ..mesh import geometry
-from ..tol import TINY
 from .contact import Contact, ContactMixin
 from .controls import LID_EASE, LID_EASE_STEPS, LID_KINEMATIC, LOWER_LID_SHARE
 from .jaw import JawMixin
-
-LID_SETTLE_ROUNDS = 8                  # most smoothing rounds of a lid's turn weights (settle_lids)
 
 
 @dataclasses.dataclass
@@ -75,9 +72,8 @@ class SkinModel(JawMixin, ContactMixin):
         """Names of every control this model takes an activation for."""
         return (*self.forces, "jaw_open", "jaw_thrust", "jaw_shift", *self.lids)
 
-    def equilibrium(self, activations=None, unfold=True):
-        """Skin (epidermis) positions (n,3) at equilibrium for {control: activation}, metres (unfold:
-        folded triangles relaxed last)."""
+    def equilibrium(self, activations=None):
+        """Skin (epidermis) positions (n,3) at equilibrium for {control: activation}, metres."""
         activations = {k: float(v) for k, v in (activations or {}).items() if v}
         unknown = set(activations) - set(self.controls)
         if unknown:
@@ -128,45 +124,8 @@ class SkinModel(JawMixin, ContactMixin):
         # skull non-penetration, on the true bone (the mandible moved)
         bn = np.where(self.on_mandible[:, None], self.bone_normal @ rot.T, self.bone_normal)
         contact = Contact(bn, (rot, t), symmetric=self._symmetric(x))
-        x = self._retract_from_bone(self._keep_out_of_bone(x, contact), contact)
-        return self._unfold(x, contact) if unfold else x
-
-    def settle_lids(self):
-        """Each lid's turn weights smoothed where its full close folds the skin before any unfold.
-
-        The turn is a bump along the fissure; where the mesh is coarse by a canthus, one triangle
-        spans from the bump's shoulder to its end and the close shears it over. The unfold then
-        relaxed the displacement round it, the patch grew over the lid's margin and opened the eye
-        again (the upper lid alone stayed 2.5-3.7 mm open on 3 of 12 adapted heads). Here the
-        weights of the fold's corners and a ring round them, on the plate, go half way to their
-        plate neighbours' mean, up to LID_SETTLE_ROUNDS times; kept only if no fold is left.
-        Returns {lid control: rounds} of the lids changed."""
-        changed = {}
-        for name, (idx, k, centre, full, weight, axis, sink) in list(self.lids.items()):
-            v = idx[: len(idx) // 3]               # the epidermis' dofs (the weights repeat per layer)
-            on = np.zeros(self.n)
-            on[v] = 1.0
-            touching = self.adjacency @ on          # the share of a vertex's neighbours on the plate
-            w = np.zeros(self.n)
-            w[v] = weight[: len(v)]
-            for rounds in range(LID_SETTLE_ROUNDS + 1):
-                bad = self.flipped(self.equilibrium({name: 1.0}, unfold=False))
-                if not len(bad):
-                    break
-                if rounds == LID_SETTLE_ROUNDS:     # not settled: the weights as built, the unfold as before
-                    self.lids[name] = (idx, k, centre, full, weight, axis, sink)
-                    rounds = 0
-                    break
-                near = np.zeros(self.n, bool)
-                near[self.tris[bad]] = True
-                near |= (self.adjacency @ near.astype(float)) > 0
-                near &= on > 0
-                mean = (self.adjacency @ w) / np.maximum(touching, TINY)
-                w[near] = 0.5 * (w[near] + mean[near])
-                self.lids[name] = (idx, k, centre, full, np.tile(w[v], 3), axis, sink)
-            if rounds:
-                changed[name] = rounds
-        return changed
+        x = self._keep_out_of_bone(x, contact)
+        return self._unfold(self._retract_from_bone(x, contact), contact)
 
     def _symmetric(self, x):
         """Whether skin x (n,3) is the template's mirror image of itself (to rounding): then the
