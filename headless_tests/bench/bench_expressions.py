@@ -42,6 +42,7 @@ sys.path.insert(0, str(ROOT))
 from headadapt_addon.core import mpeg4
 from headadapt_addon.core.anatomy import surface_point
 from headadapt_addon.core.mesh.inside import winding_numbers
+from headadapt_addon.core.mesh.spatial import MeshQuery
 from headadapt_addon.core.skin import arkit, bake, drive
 from headadapt_addon.core.skin.build import build as build_skin
 from headadapt_addon.core.template import load_template
@@ -167,28 +168,17 @@ def fit_units(tpl, model, refs):
 
 def seen_eyeball(skin, tpl, eye, step=0.25e-3):
     """Share (0-1) of the eyeball's front (points (k,3), seen from the front, -y) that no seen skin
-    triangle in front of its centre covers, on a grid of `step` m."""
+    covers: rays along +y on a grid of `step` m over its outline, from 10 cm in front of its centre to
+    the centre's plane, none of which hits the skin (its triangles without a hidden corner)."""
     centre = eye.mean(axis=0)
     radius = 0.98 * np.linalg.norm(eye - centre, axis=1).max()
     ticks = np.arange(-radius, radius, step)
     grid = np.stack(np.meshgrid(ticks, ticks), axis=-1).reshape(-1, 2)
     grid = grid[np.linalg.norm(grid, axis=1) < radius] + centre[[0, 2]]
-    tris = tpl.skin.tris[~tpl.hidden[tpl.skin.tris].any(axis=1)]
-    mid = skin[tris].mean(axis=1)
-    near = (np.abs(mid[:, [0, 2]] - centre[[0, 2]]) < 1.5 * radius).all(axis=1) & (mid[:, 1] < centre[1])
-    corners = skin[tris[near]][:, :, [0, 2]]
-    e1, e2 = corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]
-    det = e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]
-    keep = np.abs(det) > 1e-14
-    corners, e1, e2, det = corners[keep], e1[keep], e2[keep], det[keep]
-    covered = np.zeros(len(grid), bool)
-    for lo in range(0, len(corners), 256):                    # barycentric test, 256 triangles at a time
-        sl = slice(lo, lo + 256)
-        d = grid[:, None, :] - corners[None, sl, 0]
-        s = (d[..., 0] * e2[sl, 1] - d[..., 1] * e2[sl, 0]) / det[sl]
-        t = (e1[sl, 0] * d[..., 1] - e1[sl, 1] * d[..., 0]) / det[sl]
-        covered |= ((s >= 0) & (t >= 0) & (s + t <= 1)).any(axis=1)
-    return float(1.0 - covered.mean())
+    origins = np.c_[grid[:, 0], np.full(len(grid), centre[1] - 0.1), grid[:, 1]]
+    seen = MeshQuery(skin, tpl.skin.tris[~tpl.hidden[tpl.skin.tris].any(axis=1)])
+    hits = seen.ray_cast(origins, np.tile([0.0, 1.0, 0.0], (len(grid), 1)), 0.1, both_ways=False)
+    return float(1.0 - hits.hit.mean())
 
 
 def lids(seeds):

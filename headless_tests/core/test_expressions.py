@@ -59,14 +59,16 @@ def test_a_blink_hides_most_of_the_eyeball_seen_at_rest(tpl, model):
     # the gap above is taken between the margins' middles only; how much of the eyeball the closed
     # lids still show says the rest: they come down in the middle and leave a slit either side of it
     # (38% of the eyeball seen at rest stays seen on the template: README, Limits)
+    eyes = [tpl.parts[e].verts for e in ("eye_l", "eye_r")]
+    rests = [bench.seen_eyeball(tpl.skin.verts, tpl, eye) for eye in eyes]
     for side, recipe in enumerate(drive.BLINK.values()):
-        eye = tpl.parts[("eye_l", "eye_r")[side]].verts
-        rest = bench.seen_eyeball(tpl.skin.verts, tpl, eye)
-        closed = bench.seen_eyeball(model.equilibrium(recipe), tpl, eye)
-        other = bench.seen_eyeball(model.equilibrium(recipe), tpl, tpl.parts[("eye_r", "eye_l")[side]].verts)
+        x = model.equilibrium(recipe)
+        rest = rests[side]
+        closed = bench.seen_eyeball(x, tpl, eyes[side])
+        other = bench.seen_eyeball(x, tpl, eyes[1 - side])
         assert rest > 0.15, rest                          # an open eye: a fifth of its front shows
         assert closed < 0.4 * rest, (closed, rest)
-        assert other == pytest.approx(rest, abs=0.01)     # the other eye stays open
+        assert other == pytest.approx(rests[1 - side], abs=0.01)     # the other eye stays open
 
 
 def test_a_lid_fap_at_its_nominal_amplitude_closes_the_eye(tpl, lid_keys):
