@@ -32,6 +32,7 @@ Template frame (or the adapted head's, same axes), metres.
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 
 import numpy as np
@@ -126,8 +127,12 @@ class SkinModel(JawMixin, ContactMixin):
         # skull non-penetration, on the true bone (the mandible moved)
         bn = np.where(self.on_mandible[:, None], self.bone_normal @ rot.T, self.bone_normal)
         contact = Contact(bn, (rot, t), symmetric=self._symmetric(x))
-        x = self._keep_out_of_bone(x, contact)
-        return self._unfold(self._retract_from_bone(x, contact), contact, pinned if pinned.any() else None)
+        x = self._retract_from_bone(self._keep_out_of_bone(x, contact), contact)
+        if pinned.any():                       # the closed margin held while the folds round it relax,
+            held = self._unfold(x.copy(), copy.deepcopy(contact), pinned)
+            if not len(self.flipped(held)):    # unless that leaves a fold (Fran's eyes, shut in the scan:
+                return held                    # her crumpled lid folds by the held middle): then as free skin
+        return self._unfold(x, contact)
 
     def _symmetric(self, x):
         """Whether skin x (n,3) is the template's mirror image of itself (to rounding): then the
