@@ -57,8 +57,9 @@ def test_a_blink_closes_both_eyes_on_the_template(tpl, model):
 
 def test_a_blink_hides_most_of_the_eyeball_seen_at_rest(tpl, model):
     # the gap above is taken between the margins' middles only; how much of the eyeball the closed
-    # lids still show says the rest: they come down in the middle and leave a slit either side of it
-    # (38% of the eyeball seen at rest stays seen on the template: README, Limits)
+    # lids still show says the rest: with the turn a narrow bump along the fissure ((1 - t^2)^2) they
+    # came down in the middle and left a slit either side (38% of the eyeball seen at rest stayed
+    # seen); shaped as the opening (a half-ellipse), 14%
     eyes = [tpl.parts[e].verts for e in ("eye_l", "eye_r")]
     rests = [bench.seen_eyeball(tpl.skin.verts, tpl, eye) for eye in eyes]
     for side, recipe in enumerate(drive.BLINK.values()):
@@ -67,7 +68,7 @@ def test_a_blink_hides_most_of_the_eyeball_seen_at_rest(tpl, model):
         closed = bench.seen_eyeball(x, tpl, eyes[side])
         other = bench.seen_eyeball(x, tpl, eyes[1 - side])
         assert rest > 0.15, rest                          # an open eye: a fifth of its front shows
-        assert closed < 0.4 * rest, (closed, rest)
+        assert closed < 0.2 * rest, (closed, rest)
         assert other == pytest.approx(rests[1 - side], abs=0.01)     # the other eye stays open
 
 
@@ -87,7 +88,7 @@ def test_a_lid_fap_at_its_nominal_amplitude_closes_the_eye(tpl, lid_keys):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("seed", [7, 3, 11, 9])     # 9: its right upper lid alone stayed 3.9 mm open
+@pytest.mark.parametrize("seed", [7, 3, 11, 9, 0, 8])     # 9: its right upper lid alone stayed 3.9 mm open
 def test_lids_close_the_eye_on_adapted_heads(tpl, legacy_heads, seed):
     _, _, ana = legacy_heads(seed)
     m = build_skin(tpl, ana)
@@ -97,17 +98,19 @@ def test_lids_close_the_eye_on_adapted_heads(tpl, legacy_heads, seed):
         x = m.equilibrium(recipe)
         assert bench.lid_gaps(tpl, x)[side] <= CLOSED, (seed, side, bench.lid_gaps(tpl, x))
         assert len(m.flipped(x)) == 0
+        eye = ana.parts[("eye_l", "eye_r")[side]]    # closed along the fissure, not only in the middle
+        shown = bench.seen_eyeball(x, tpl, eye) / bench.seen_eyeball(ana.parts["skin"], tpl, eye)
+        assert shown < 0.35, (seed, side, shown)       # 24-41% with the narrow bump; now at most 23%
     both = m.equilibrium(drive.BLINK["eyeBlinkLeft"] | drive.BLINK["eyeBlinkRight"])
     assert max(bench.lid_gaps(tpl, both)) <= CLOSED
     for side, name in enumerate(("close_t_l_eyelid", "close_t_r_eyelid")):
         x = m.equilibrium(drive.FAP_SKIN[name])
         assert len(m.flipped(x)) == 0
-        # the upper lid alone closes the eye too: on these four heads, not on every head (README:
-        # 9 of legacy heads 0-11; on 0, 2 and 8 the turn, fading along the fissure, takes a lid vertex
-        # by the outer canthus down past its less-turned neighbours, the triangle folds, and relaxing
-        # it reopens the lid; seed 7 with level 1 paired along normals too). Head 9's right one
-        # stayed 3.9 mm open until a fold's corners were smoothed in place before its displacement
-        # was relaxed (contact.UNFOLD_SMOOTH).
+        # the upper lid alone closes the eye too, on all 12 legacy heads 0-11 (README). Head 9's right
+        # one stayed 3.9 mm open until a fold's corners were smoothed in place before its displacement
+        # was relaxed (contact.UNFOLD_SMOOTH); on 0, 2 and 8 a triangle by the outer canthus folded and
+        # relaxing it reopened the lid 2.6-3.6 mm, until the margin's middle was held while the folds
+        # round it are relaxed (controls.LID_PIN).
         assert bench.lid_gaps(tpl, x)[side] <= CLOSED, (seed, name, bench.lid_gaps(tpl, x))
 
 
@@ -116,7 +119,7 @@ def test_a_blink_closes_the_eye_where_a_triangle_at_the_canthus_folds(tpl, legac
     # legacy head 8: blinking, a tiny triangle at the left inner canthus stayed folded through the
     # relaxations of the displacement around it; the patch grew ring by ring over the lid margin and
     # opened the eye 3.6 mm. Its corners' positions smoothed first (contact.UNFOLD_SMOOTH) it unfolds
-    # where it is. (The upper lid alone still leaves this head's eyes 3.5 mm open: README.)
+    # where it is.
     _, _, ana = legacy_heads(8)
     m = build_skin(tpl, ana)
     for side, recipe in enumerate(drive.BLINK.values()):

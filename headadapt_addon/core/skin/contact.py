@@ -164,7 +164,7 @@ class ContactMixin:
             y[crossed] = x[crossed]
         return y
 
-    def _unfold(self, x, contact):
+    def _unfold(self, x, contact, pinned=None):
         """Relax the displacement around folded triangles (Jacobi steps toward the neighbours' mean).
 
         Springs that only resist stretch let tiny triangles (lip corners, lid margins) fold under
@@ -175,6 +175,8 @@ class ContactMixin:
         stubborn fold's relaxation over the whole face and flattened the key (a smile on a
         generated head to 0.4 of its size). Each step first smooths the folded triangles' corners'
         positions (UNFOLD_SMOOTH), kept if that leaves no fold; else the displacement is relaxed.
+        `pinned` (n,) bools: skin held where it is (a closed lid's margin, controls.LID_PIN), unless a
+        fold at it outlasts UNFOLD_RINGS steps (relaxed with the rest, the lid's margin opened again).
         """
         rest = self.rest[: self.n]
         age = np.zeros(self.n)
@@ -198,15 +200,21 @@ class ContactMixin:
             stuck = age[corners].max()
             for _ in range(int(min(stuck, UNFOLD_RINGS))):
                 patch |= (self.adjacency @ patch.astype(float)) > 0
+            if pinned is not None:                 # a fold that outlasts the rings frees its pinned corners
+                pinned[corners[age[corners] > UNFOLD_RINGS]] = False
             keep = UNFOLD_GIVE ** max(stuck - UNFOLD_RINGS, 0.0)
             before = x.copy()
             for _ in range(UNFOLD_SMOOTH):
                 x[corners] = (self.adjacency @ x)[corners]
+            if pinned is not None:
+                x[pinned] = before[pinned]
             if len(self.flipped(x)):               # not unfolded in place: relax the patch's displacement
                 x = before.copy()
                 for _ in range(10):
                     u = x - rest
                     x[patch] = rest[patch] + keep * (self.adjacency @ u)[patch]
+                    if pinned is not None:
+                        x[pinned] = before[pinned]
             else:
                 patch = np.zeros(self.n, bool)
                 patch[corners] = True

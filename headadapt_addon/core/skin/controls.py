@@ -10,7 +10,12 @@ from ..tol import TINY
 
 LID_REACH = 1.7                       # the lid's turn fades to 0 at this many margin radii from the eye axis
 LOWER_LID_SHARE = 0.35                # the lower lid at 1 rises this share of the opening (as in a blink)
-LID_CORNER_POWER = 2.0                # the bump's ends flatten (a steep end folds the rim by the canthus)
+LID_CORNER_POWER = 0.5                # the bump's shape along the fissure: 1/2, the half-ellipse of an open
+                                      # eye (at 2 the lids met in the middle only and left a slit either
+                                      # side, a third of the eyeball seen at rest; the ellipse's steep ends
+                                      # fold the canthus, which the unfold relaxes with LID_PIN held)
+LID_PIN = 0.97                        # lid skin turned at least this share stays on its plate while folds
+                                      # round it are relaxed (relaxed too, the lid opened again)
 LID_FRONT = 0.6                       # the plate fades out over this many margin radii in front of the eye's centre
 LID_KINEMATIC = 0.2                   # lid skin turned at least this share is put where its plate takes it
                                       # (the solve's springs shear the lid's thin rim and fold it)
@@ -232,9 +237,10 @@ def _lid_plates(tpl, skin, centre, fdps):
     full = abs(float(np.arctan2(np.cross(r1, r3) @ axis, r1 @ r3)))   # margin to margin, about the axis
     line_z = inner[2] + (along - (inner - centre) @ axis) / (2 * half) * (outer[2] - inner[2])
     upper = skin[:, 2] > line_z
-    # Along the fissure the turn is a smooth bump, 1 at 3.1 and 0 where the margins join (the
-    # canthi: the ends of the lid skin's edges from the upper side to the lower near the fissure),
-    # a function of `along` only so the lid's rim (two rows 0.5 mm apart) turns as one.
+    # Along the fissure the turn is a bump, 1 at 3.1 and 0 where the margins join (the canthi: the
+    # ends of the lid skin's edges from the upper side to the lower near the fissure), shaped as the
+    # opening (a half-ellipse), a function of `along` only so the lid's rim (two rows 0.5 mm apart)
+    # turns as one.
     tris = tpl.skin.tris
     e = np.concatenate([tris[:, [0, 1]], tris[:, [1, 2]], tris[:, [2, 0]]])
     e = e[(upper[e[:, 0]] != upper[e[:, 1]]) & lid[e].any(axis=1) & (rel[e, 1] < 0).all(axis=1)

@@ -32,13 +32,14 @@ Template frame (or the adapted head's, same axes), metres.
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 
 import numpy as np
 
 from ..mesh import geometry
 from .contact import Contact, ContactMixin
-from .controls import LID_EASE, LID_EASE_STEPS, LID_KINEMATIC, LOWER_LID_SHARE
+from .controls import LID_EASE, LID_EASE_STEPS, LID_KINEMATIC, LID_PIN, LOWER_LID_SHARE
 from .jaw import JawMixin
 
 
@@ -90,6 +91,7 @@ class SkinModel(JawMixin, ContactMixin):
             target = self.on_jaw(rest_h, rot, t)
             f[hyp] += np.where(self.on_mandible[:, None], self.bone_k[:, None] * (target - rest_h), 0.0)
         placed = []
+        pinned = np.zeros(self.n, bool)        # the lid skin turned all the way: held where its plate put it
         for name, (idx, k, centre, full, weight, axis, sink) in self.lids.items():
             if name in activations:
                 sign, act = (1.0 if name.startswith("upper") else -1.0), activations[name]
@@ -110,6 +112,7 @@ class SkinModel(JawMixin, ContactMixin):
                 f[idx] += k[:, None] * (turned - rel)
                 skin = idx < self.n                # the lid's skin is put on its plate's target
                 placed.append((idx[skin], (centre + turned)[skin], np.clip(weight[skin] / LID_KINEMATIC, 0, 1)))
+                pinned[idx[skin][weight[skin] >= LID_PIN]] = True
         u = self.solve(f)
         x = self.rest[: self.n] + u[: self.n]
         if placed:                             # the lid skin on its plate, the skin around it eased after
@@ -124,8 +127,12 @@ class SkinModel(JawMixin, ContactMixin):
         # skull non-penetration, on the true bone (the mandible moved)
         bn = np.where(self.on_mandible[:, None], self.bone_normal @ rot.T, self.bone_normal)
         contact = Contact(bn, (rot, t), symmetric=self._symmetric(x))
-        x = self._keep_out_of_bone(x, contact)
-        return self._unfold(self._retract_from_bone(x, contact), contact)
+        x = self._retract_from_bone(self._keep_out_of_bone(x, contact), contact)
+        if pinned.any():                       # the closed margin held while the folds round it relax,
+            held = self._unfold(x.copy(), copy.deepcopy(contact), pinned)
+            if not len(self.flipped(held)):    # unless that leaves a fold (Fran's eyes, shut in the scan:
+                return held                    # her crumpled lid folds by the held middle): then as free skin
+        return self._unfold(x, contact)
 
     def _symmetric(self, x):
         """Whether skin x (n,3) is the template's mirror image of itself (to rounding): then the
