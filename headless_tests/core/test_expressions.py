@@ -59,7 +59,8 @@ def test_a_blink_hides_most_of_the_eyeball_seen_at_rest(tpl, model):
     # the gap above is taken between the margins' middles only; how much of the eyeball the closed
     # lids still show says the rest: with the turn a narrow bump along the fissure ((1 - t^2)^2) they
     # came down in the middle and left a slit either side (38% of the eyeball seen at rest stayed
-    # seen); shaped as the opening (a half-ellipse), 14%
+    # seen); shaped as the opening (a half-ellipse), 14%; with the folds by the closed lid smoothed in
+    # place a few at a time (controls.LID_ZONE_RINGS), 9%
     eyes = [tpl.parts[e].verts for e in ("eye_l", "eye_r")]
     rests = [bench.seen_eyeball(tpl.skin.verts, tpl, eye) for eye in eyes]
     for side, recipe in enumerate(drive.BLINK.values()):
@@ -68,7 +69,7 @@ def test_a_blink_hides_most_of_the_eyeball_seen_at_rest(tpl, model):
         closed = bench.seen_eyeball(x, tpl, eyes[side])
         other = bench.seen_eyeball(x, tpl, eyes[1 - side])
         assert rest > 0.15, rest                          # an open eye: a fifth of its front shows
-        assert closed < 0.2 * rest, (closed, rest)
+        assert closed < 0.12 * rest, (closed, rest)
         assert other == pytest.approx(rests[1 - side], abs=0.01)     # the other eye stays open
 
 
@@ -100,7 +101,7 @@ def test_lids_close_the_eye_on_adapted_heads(tpl, legacy_heads, seed):
         assert len(m.flipped(x)) == 0
         eye = ana.parts[("eye_l", "eye_r")[side]]    # closed along the fissure, not only in the middle
         shown = bench.seen_eyeball(x, tpl, eye) / bench.seen_eyeball(ana.parts["skin"], tpl, eye)
-        assert shown < 0.35, (seed, side, shown)       # 24-41% with the narrow bump; now at most 23%
+        assert shown < 0.25, (seed, side, shown)       # 24-41% with the narrow bump; now at most 21%
     both = m.equilibrium(drive.BLINK["eyeBlinkLeft"] | drive.BLINK["eyeBlinkRight"])
     assert max(bench.lid_gaps(tpl, both)) <= CLOSED
     for side, name in enumerate(("close_t_l_eyelid", "close_t_r_eyelid")):
@@ -112,6 +113,12 @@ def test_lids_close_the_eye_on_adapted_heads(tpl, legacy_heads, seed):
         # relaxing it reopened the lid 2.6-3.6 mm, until the margin's middle was held while the folds
         # round it are relaxed (controls.LID_PIN).
         assert bench.lid_gaps(tpl, x)[side] <= CLOSED, (seed, name, bench.lid_gaps(tpl, x))
+        # ... along the fissure too: 31-39% of the eyeball stayed seen on heads 3, 8 and 11 while the
+        # folds by the lid were relaxed as displacement, which pulled the lid back up; smoothed in
+        # place a few at a time (controls.LID_ZONE_RINGS), at most 27%
+        eye = ana.parts[("eye_l", "eye_r")[side]]
+        shown = bench.seen_eyeball(x, tpl, eye) / bench.seen_eyeball(ana.parts["skin"], tpl, eye)
+        assert shown < 0.32, (seed, name, shown)
 
 
 @pytest.mark.slow

@@ -164,7 +164,7 @@ class ContactMixin:
             y[crossed] = x[crossed]
         return y
 
-    def _unfold(self, x, contact, pinned=None):
+    def _unfold(self, x, contact, pinned=None, zone=None):
         """Relax the displacement around folded triangles (Jacobi steps toward the neighbours' mean).
 
         Springs that only resist stretch let tiny triangles (lip corners, lid margins) fold under
@@ -177,6 +177,8 @@ class ContactMixin:
         positions (UNFOLD_SMOOTH), kept if that leaves no fold; else the displacement is relaxed.
         `pinned` (n,) bools: skin held where it is (a closed lid's margin, controls.LID_PIN), unless a
         fold at it outlasts UNFOLD_RINGS steps (relaxed with the rest, the lid's margin opened again).
+        `zone` (n,) bools: skin by a turned lid, where a smoothing in place that leaves fewer folds is
+        kept (and the rest smoothed next step) instead of relaxing the displacement.
         """
         rest = self.rest[: self.n]
         age = np.zeros(self.n)
@@ -208,7 +210,17 @@ class ContactMixin:
                 x[corners] = (self.adjacency @ x)[corners]
             if pinned is not None:
                 x[pinned] = before[pinned]
-            if len(self.flipped(x)):               # not unfolded in place: relax the patch's displacement
+            left = len(self.flipped(x))
+            if left and zone is not None and left < len(bad) and zone[corners].all():
+                # by a closed lid: fewer folds is kept, the rest smoothed next step (relaxing the
+                # displacement there pulls the lid back up; controls.LID_ZONE_RINGS)
+                moved = np.zeros(self.n, bool)
+                moved[corners] = True
+                moved |= self.adjacency @ moved.astype(float) > 0
+                x = self._retract_from_bone(self._keep_out_of_bone(x, contact, moved), contact, moved)
+                changed |= (x != before).any(axis=1)
+                continue
+            if left:                               # not unfolded in place: relax the patch's displacement
                 x = before.copy()
                 for _ in range(10):
                     u = x - rest

@@ -16,6 +16,10 @@ LID_CORNER_POWER = 0.5                # the bump's shape along the fissure: 1/2,
                                       # fold the canthus, which the unfold relaxes with LID_PIN held)
 LID_PIN = 0.97                        # lid skin turned at least this share stays on its plate while folds
                                       # round it are relaxed (relaxed too, the lid opened again)
+LID_ZONE_RINGS = 6                    # folds within this many rings of a turned lid's skin are first smoothed
+                                      # in place a few at a time (positions, not displacement: relaxing the
+                                      # displacement pulled the closed lid back up, to 39% of the eyeball
+                                      # seen on head 11); elsewhere (a smile's lip corners) as before
 LID_FRONT = 0.6                       # the plate fades out over this many margin radii in front of the eye's centre
 LID_KINEMATIC = 0.2                   # lid skin turned at least this share is put where its plate takes it
                                       # (the solve's springs shear the lid's thin rim and fold it)

@@ -39,7 +39,7 @@ import numpy as np
 
 from ..mesh import geometry
 from .contact import Contact, ContactMixin
-from .controls import LID_EASE, LID_EASE_STEPS, LID_KINEMATIC, LID_PIN, LOWER_LID_SHARE
+from .controls import LID_EASE, LID_EASE_STEPS, LID_KINEMATIC, LID_PIN, LID_ZONE_RINGS, LOWER_LID_SHARE
 from .jaw import JawMixin
 
 
@@ -92,6 +92,7 @@ class SkinModel(JawMixin, ContactMixin):
             f[hyp] += np.where(self.on_mandible[:, None], self.bone_k[:, None] * (target - rest_h), 0.0)
         placed = []
         pinned = np.zeros(self.n, bool)        # the lid skin turned all the way: held where its plate put it
+        zone = np.zeros(self.n, bool)          # the turned lids' skin
         for name, (idx, k, centre, full, weight, axis, sink) in self.lids.items():
             if name in activations:
                 sign, act = (1.0 if name.startswith("upper") else -1.0), activations[name]
@@ -113,6 +114,7 @@ class SkinModel(JawMixin, ContactMixin):
                 skin = idx < self.n                # the lid's skin is put on its plate's target
                 placed.append((idx[skin], (centre + turned)[skin], np.clip(weight[skin] / LID_KINEMATIC, 0, 1)))
                 pinned[idx[skin][weight[skin] >= LID_PIN]] = True
+                zone[idx[skin][weight[skin] > 0]] = True
         u = self.solve(f)
         x = self.rest[: self.n] + u[: self.n]
         if placed:                             # the lid skin on its plate, the skin around it eased after
@@ -128,8 +130,10 @@ class SkinModel(JawMixin, ContactMixin):
         bn = np.where(self.on_mandible[:, None], self.bone_normal @ rot.T, self.bone_normal)
         contact = Contact(bn, (rot, t), symmetric=self._symmetric(x))
         x = self._retract_from_bone(self._keep_out_of_bone(x, contact), contact)
+        for _ in range(LID_ZONE_RINGS):
+            zone |= (self.adjacency @ zone.astype(float)) > 0
         if pinned.any():                       # the closed margin held while the folds round it relax,
-            held = self._unfold(x.copy(), copy.deepcopy(contact), pinned)
+            held = self._unfold(x.copy(), copy.deepcopy(contact), pinned, zone)
             if not len(self.flipped(held)):    # unless that leaves a fold (Fran's eyes, shut in the scan:
                 return held                    # her crumpled lid folds by the held middle): then as free skin
         return self._unfold(x, contact)
