@@ -95,12 +95,14 @@ def test_lids_close_the_eye_on_adapted_heads(tpl, legacy_heads, seed):
     m = build_skin(tpl, ana)
     rest = bench.lid_gaps(tpl, ana.parts["skin"])
     assert min(rest) > 0.006
+    eyes = [ana.parts[e] for e in ("eye_l", "eye_r")]
+    seen_at_rest = [bench.seen_eyeball(ana.parts["skin"], tpl, eye) for eye in eyes]
     for side, recipe in enumerate(drive.BLINK.values()):
         x = m.equilibrium(recipe)
         assert bench.lid_gaps(tpl, x)[side] <= CLOSED, (seed, side, bench.lid_gaps(tpl, x))
         assert len(m.flipped(x)) == 0
-        eye = ana.parts[("eye_l", "eye_r")[side]]    # closed along the fissure, not only in the middle
-        shown = bench.seen_eyeball(x, tpl, eye) / bench.seen_eyeball(ana.parts["skin"], tpl, eye)
+        # closed along the fissure, not only in the middle
+        shown = bench.seen_eyeball(x, tpl, eyes[side]) / seen_at_rest[side]
         assert shown < 0.25, (seed, side, shown)       # 24-41% with the narrow bump; now at most 21%
     both = m.equilibrium(drive.BLINK["eyeBlinkLeft"] | drive.BLINK["eyeBlinkRight"])
     assert max(bench.lid_gaps(tpl, both)) <= CLOSED
@@ -116,8 +118,7 @@ def test_lids_close_the_eye_on_adapted_heads(tpl, legacy_heads, seed):
         # ... along the fissure too: 31-39% of the eyeball stayed seen on heads 3, 8 and 11 while the
         # folds by the lid were relaxed as displacement, which pulled the lid back up; smoothed in
         # place a few at a time (controls.LID_ZONE_RINGS), at most 27%
-        eye = ana.parts[("eye_l", "eye_r")[side]]
-        shown = bench.seen_eyeball(x, tpl, eye) / bench.seen_eyeball(ana.parts["skin"], tpl, eye)
+        shown = bench.seen_eyeball(x, tpl, eyes[side]) / seen_at_rest[side]
         assert shown < 0.32, (seed, name, shown)
 
 

@@ -211,16 +211,10 @@ class ContactMixin:
             if pinned is not None:
                 x[pinned] = before[pinned]
             left = len(self.flipped(x))
-            if left and zone is not None and left < len(bad) and zone[corners].all():
-                # by a closed lid: fewer folds is kept, the rest smoothed next step (relaxing the
-                # displacement there pulls the lid back up; controls.LID_ZONE_RINGS)
-                moved = np.zeros(self.n, bool)
-                moved[corners] = True
-                moved |= self.adjacency @ moved.astype(float) > 0
-                x = self._retract_from_bone(self._keep_out_of_bone(x, contact, moved), contact, moved)
-                changed |= (x != before).any(axis=1)
-                continue
-            if left:                               # not unfolded in place: relax the patch's displacement
+            # by a closed lid a smoothing that leaves fewer folds is kept, the rest smoothed next step
+            # (relaxing the displacement there pulls the lid back up; controls.LID_ZONE_RINGS)
+            fewer = zone is not None and left < len(bad) and zone[corners].all()
+            if left and not fewer:                 # not unfolded in place: relax the patch's displacement
                 x = before.copy()
                 for _ in range(10):
                     u = x - rest

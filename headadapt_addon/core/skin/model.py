@@ -130,9 +130,9 @@ class SkinModel(JawMixin, ContactMixin):
         bn = np.where(self.on_mandible[:, None], self.bone_normal @ rot.T, self.bone_normal)
         contact = Contact(bn, (rot, t), symmetric=self._symmetric(x))
         x = self._retract_from_bone(self._keep_out_of_bone(x, contact), contact)
-        for _ in range(LID_ZONE_RINGS):
-            zone |= (self.adjacency @ zone.astype(float)) > 0
         if pinned.any():                       # the closed margin held while the folds round it relax,
+            for _ in range(LID_ZONE_RINGS):
+                zone |= (self.adjacency @ zone.astype(float)) > 0
             held = self._unfold(x.copy(), copy.deepcopy(contact), pinned, zone)
             if not len(self.flipped(held)):    # unless that leaves a fold (Fran's eyes, shut in the scan:
                 return held                    # her crumpled lid folds by the held middle): then as free skin
