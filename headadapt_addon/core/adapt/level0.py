@@ -29,7 +29,8 @@ class AffineMap:
         return x @ (self.matrix - np.eye(3)).T + self.shift
 
 
-def global_affine(fit: Fit, clicks: Pairs, reach: float, iterations: int, ridge: float = 1e-3) -> AffineMap:
+def global_affine(fit: Fit, clicks: Pairs, reach: float, iterations: int, ridge: float = 1e-3,
+                  along_normal: bool | None = None) -> AffineMap:
     """Level 0, first half: the affine map that best takes the template skin onto the scan (robust
     weights) and the clicks onto their places, by a few ICP rounds from the calibrated pose. The
     clicks sit on the front of the face and cannot say how deep or wide the head is; the scan can.
@@ -37,11 +38,13 @@ def global_affine(fit: Fit, clicks: Pairs, reach: float, iterations: int, ridge:
     options.affine_weights say (by default the scalp and forehead not at all), and its pairs lie
     along the template's normals (options.affine_along_normal): fitted to the whole skin by closest
     points, the map went on tilting the face with every round, away from the best affine map even
-    when started there (./ha bench adapt, README "What is different")."""
+    when started there (./ha bench adapt, README "What is different"). along_normal: the pairing
+    (None: options.affine_along_normal)."""
     centre = fit.V.mean(axis=0)
+    along = fit.options.affine_along_normal if along_normal is None else along_normal
     fit.functions = [AffineMap(np.eye(3), np.zeros(3))]
     for _ in range(iterations):
-        pairs = surface_pairs(fit, reach, fit.options.affine_along_normal, mask=fit.affine_weight > 0)
+        pairs = surface_pairs(fit, reach, along, mask=fit.affine_weight > 0)
         pairs = Pairs(pairs.p, pairs.q, pairs.w * fit.affine_weight[pairs.vertex], pairs.vertex) + clicks
         X = np.c_[pairs.p - centre, np.ones(len(pairs))]
         XtW = X.T * pairs.w
@@ -52,9 +55,20 @@ def global_affine(fit: Fit, clicks: Pairs, reach: float, iterations: int, ridge:
     return fit.functions[0]
 
 
+def affine_scan_distance(fit: Fit, affine: AffineMap, clip: float) -> float:
+    """How far the skin the affine map fits (its weighted, seen vertices) lies from the scan: the RMS
+    of their distances to it (ScanSide.nearest_on_plane, as the closest-point pairs find it), each
+    clipped at `clip` (m) so that skin over a hole or past the scan's edge counts as a miss and no more."""
+    x = fit.V[(fit.vert_w > 0) & (fit.affine_weight > 0)]
+    _, _, dist, _ = fit.scan.nearest_on_plane(x + affine(x))
+    return float(np.sqrt(np.mean(np.minimum(dist, clip) ** 2)))
+
+
 def level_zero(fit: Fit, clicks: Pairs) -> None:
     """Level 0 (sec 3.2): the whole-skin affine map fitted to the scan and the clicks (global_affine),
-    or, when that is switched off, the paper's global RBF through the clicks."""
+    both ways (pairs along the normals, and at the closest points) when options.affine_both_pairings,
+    keeping the map whose skin lies nearer the scan (affine_scan_distance); or, when the affine map is
+    switched off, the paper's global RBF through the clicks."""
     o = fit.options
     # the wrong-click check (clicks.check_clicks) fits level 0 to the same clicks first: when it kept
     # them all and the mouth is open, that map is this one (the same rounds from the same start)
@@ -65,8 +79,12 @@ def level_zero(fit: Fit, clicks: Pairs) -> None:
     if o.affine_iterations < 0:
         fit.functions = [AffineMap(np.eye(3), np.zeros(3))]
     elif o.affine_iterations:
-        global_affine(fit, Pairs(clicks.p, clicks.q, clicks.w * o.click_weight),
-                      o.reach_factor * fit.threshold, o.affine_iterations, o.affine_ridge)
+        weighted = Pairs(clicks.p, clicks.q, clicks.w * o.click_weight)
+        args = (weighted, o.reach_factor * fit.threshold, o.affine_iterations, o.affine_ridge)
+        maps = [global_affine(fit, *args)]
+        if o.affine_both_pairings:
+            maps.append(global_affine(fit, *args, along_normal=not o.affine_along_normal))
+        fit.functions = [min(maps, key=lambda m: affine_scan_distance(fit, m, o.affine_distance_clip))]
     else:
         fit.functions = [global_rbf(clicks.p, clicks.q, o.rho)]
     fit.level0_memo = (key, fit.functions[0])

@@ -52,6 +52,11 @@ class AdaptOptions:
                                         # real CT's face lay 1.08 mm from its skin instead of 0.83)
     affine_along_normal: bool = True    # the affine map's pairs lie along the template's normals (rays),
                                         # not at closest points: no sideways pull on the face
+    affine_both_pairings: bool = True   # fit the affine map both ways (pairs along the normals and at the
+                                        # closest points) and keep the one whose skin lies nearer the scan
+                                        # (level0.affine_scan_distance): either pairing alone lost some
+                                        # heads by a millimetre (docs/MEASUREMENTS.md)
+    affine_distance_clip: float = 0.005 # a vertex farther than this from the scan counts as this far, m
     affine_ridge: float = 1e-3          # how firmly the affine map's linear part is held to the identity
     rays_from_level: int = 2            # from this level on, pairs along the template's normal (sec 4.1)
     fold_rounds: int = 2                # refits of a level without pairs around the triangles it folded

@@ -112,7 +112,7 @@ class ScanSide:
         if self.coarse:
             q, f, d = self.query.closest_points(points)
             return q, self.face_normals[f], d, self.boundary_faces[f]
-        _, i = self.vertex_tree.query(points)
+        _, i = self.vertex_tree.query(points, workers=-1)
         n = self.vertex_normals[i]
         q = points - np.einsum("ij,ij->i", points - self.verts[i], n)[:, None] * n
         return q, n, np.linalg.norm(q - points, axis=1), self.boundary_verts[i]
