@@ -44,7 +44,7 @@ def global_affine(fit: Fit, clicks: Pairs, reach: float, iterations: int, ridge:
     along = fit.options.affine_along_normal if along_normal is None else along_normal
     fit.functions = [AffineMap(np.eye(3), np.zeros(3))]
     for _ in range(iterations):
-        pairs = surface_pairs(fit, reach, along, mask=fit.affine_weight > 0)
+        pairs = surface_pairs(fit, reach, along, mask=fit.affine_weight > 0, exact=False)
         pairs = Pairs(pairs.p, pairs.q, pairs.w * fit.affine_weight[pairs.vertex], pairs.vertex) + clicks
         X = np.c_[pairs.p - centre, np.ones(len(pairs))]
         XtW = X.T * pairs.w
@@ -57,10 +57,10 @@ def global_affine(fit: Fit, clicks: Pairs, reach: float, iterations: int, ridge:
 
 def affine_scan_distance(fit: Fit, affine: AffineMap, clip: float) -> float:
     """How far the skin the affine map fits (its weighted, seen vertices) lies from the scan: the RMS
-    of their distances to it (ScanSide.nearest_on_plane, as the closest-point pairs find it), each
+    of their distances to it (the nearest vertex's tangent plane, as its closest-point pairs), each
     clipped at `clip` (m) so that skin over a hole or past the scan's edge counts as a miss and no more."""
     x = fit.V[(fit.vert_w > 0) & (fit.affine_weight > 0)]
-    _, _, dist, _ = fit.scan.nearest_on_plane(x + affine(x))
+    _, _, dist, _ = fit.scan.nearest_on_plane(x + affine(x), exact_if_coarse=False)
     return float(np.sqrt(np.mean(np.minimum(dist, clip) ** 2)))
 
 

@@ -66,12 +66,14 @@ def curvature_pairs(fit: Fit, box: np.ndarray, count: int, reach: float, spacing
     return Pairs(tp, scan.verts[src[ok]], np.full(len(tp), fit.options.curvature_weight))
 
 
-def surface_pairs(fit: Fit, reach: float, along_normal: bool = False, mask: np.ndarray | None = None) -> Pairs:
+def surface_pairs(fit: Fit, reach: float, along_normal: bool = False, mask: np.ndarray | None = None,
+                  exact: bool = True) -> Pairs:
     """Pairs of the seen template vertices with the scan, kept when within `reach`, the normals agree
     within 60 degrees and the point is not on a hole's border, weighted by region and by a robust
     (Cauchy) weight on the distance. Coarse levels take the closest point (non-rigid ICP: the
     template slides until its shapes meet the scan's); fine levels cast along the template's normal
-    (the paper's rays: no sideways pull, so nothing folds where the scan lacks the template's detail)."""
+    (the paper's rays: no sideways pull, so nothing folds where the scan lacks the template's detail).
+    exact False: closest points by the nearest vertex's tangent plane on any scan (ScanSide.nearest_on_plane)."""
     cur = fit.current()
     normals = geometry.vertex_normals(cur, fit.tris)
     use = np.flatnonzero((fit.vert_w > 0) & ~fit.near_seam & ~fit.quiet & (True if mask is None else mask))
@@ -81,7 +83,7 @@ def surface_pairs(fit: Fit, reach: float, along_normal: bool = False, mask: np.n
         q, n, d, border = np.nan_to_num(hit.point), fit.scan.face_normals[f], np.abs(np.nan_to_num(hit.t, nan=np.inf)), \
             fit.scan.boundary_faces[f] | ~hit.hit
     else:
-        q, n, d, border = fit.scan.nearest_on_plane(cur[use])
+        q, n, d, border = fit.scan.nearest_on_plane(cur[use], exact_if_coarse=exact)
     ok = (d < reach) & ~border & (np.einsum("ij,ij->i", normals[use], n) > 0.5)
     w = fit.vert_w[use] / (1.0 + (np.minimum(d, reach) / (fit.options.robust_scale * reach)) ** 2)
     return Pairs(fit.V[use[ok]], q[ok], w[ok], use[ok])

@@ -35,14 +35,12 @@ def _spatial_side(verts, tris, backend, dense_spacing):
     median_edge = tree.median_edge() if tree is not None else \
         float(np.median(np.linalg.norm(verts[tris[:, 0]] - verts[tris[:, 1]], axis=1)))
     coarse = median_edge > dense_spacing
-    # the dense scans' tangent planes only: the numpy tree's own kd-tree of the vertices (its closest
-    # points' bound) when it holds them all, built once for both; else one built alike (unbalanced,
-    # loose: see bvh.vertex_tree)
-    vtree = None
-    if not coarse:
-        vtree = tree.vertex_tree() if tree is not None else None
-        if vtree is None or vtree.n != len(verts):
-            vtree = cKDTree(verts, balanced_tree=False, compact_nodes=False)
+    # the tangent planes (a dense scan's pairs, level 0's on any scan): the numpy tree's own kd-tree of
+    # the vertices (its closest points' bound) when it holds them all, built once for both; else one
+    # built alike (unbalanced, loose: see bvh.vertex_tree)
+    vtree = tree.vertex_tree() if tree is not None else None
+    if vtree is None or vtree.n != len(verts):
+        vtree = cKDTree(verts, balanced_tree=False, compact_nodes=False)
     return query, median_edge, coarse, vtree
 
 
@@ -98,9 +96,9 @@ class ScanSide:
     query = property(lambda self: self._ready()[0], doc="The scan's MeshQuery (closest points, rays).")
     median_edge = property(lambda self: self._ready()[1], doc="The median of the triangles' first edges.")
     coarse = property(lambda self: self._ready()[2], doc="Whether the median edge exceeds dense_spacing.")
-    vertex_tree = property(lambda self: self._ready()[3], doc="The vertices' kd-tree (dense scans), else None.")
+    vertex_tree = property(lambda self: self._ready()[3], doc="The vertices' kd-tree.")
 
-    def nearest_on_plane(self, points):
+    def nearest_on_plane(self, points, exact_if_coarse=True):
         """(point, normal, distance, on a hole's border) per query point for ICP pairs: on a dense scan
         the nearest scan vertex's tangent plane (a fast stand-in for the closest surface point: off
         by curvature x spacing^2 / 2, under 0.05 mm at 2 mm spacing), else the closest point with its
@@ -108,8 +106,10 @@ class ScanSide:
         the face is the spatial backend's choice (numpy's: spatial.py's rule); the report judges
         the point itself (metrics.distance_error), so its verdict does not hang on that choice.
         (Judging the pairs that way too, normal_at and on_border, moved the CT's pressed skull 1 mm
-        off in depth at half an edge's border and its skin's p95 from 1.90 to 2.24 mm at one edge.)"""
-        if self.coarse:
+        off in depth at half an edge's border and its skin's p95 from 1.90 to 2.24 mm at one edge.)
+        exact_if_coarse False: the tangent plane on any scan (level 0's affine map: off by curvature x
+        spacing^2 / 2, 0.15 mm at 3 mm spacing, far below what an affine map fits; a tenth the time)."""
+        if self.coarse and exact_if_coarse:
             q, f, d = self.query.closest_points(points)
             return q, self.face_normals[f], d, self.boundary_faces[f]
         _, i = self.vertex_tree.query(points, workers=-1)
