@@ -81,10 +81,11 @@ def level_zero(fit: Fit, clicks: Pairs) -> None:
     elif o.affine_iterations:
         weighted = Pairs(clicks.p, clicks.q, clicks.w * o.click_weight)
         args = (weighted, o.reach_factor * fit.threshold, o.affine_iterations, o.affine_ridge)
-        maps = [global_affine(fit, *args)]
+        best = global_affine(fit, *args)
         if o.affine_both_pairings:
-            maps.append(global_affine(fit, *args, along_normal=not o.affine_along_normal))
-        fit.functions = [min(maps, key=lambda m: affine_scan_distance(fit, m, o.affine_distance_clip))]
+            other = global_affine(fit, *args, along_normal=not o.affine_along_normal)
+            best = min(best, other, key=lambda m: affine_scan_distance(fit, m, o.affine_distance_clip))
+        fit.functions = [best]
     else:
         fit.functions = [global_rbf(clicks.p, clicks.q, o.rho)]
     fit.level0_memo = (key, fit.functions[0])

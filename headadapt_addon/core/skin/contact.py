@@ -164,6 +164,12 @@ class ContactMixin:
             y[crossed] = x[crossed]
         return y
 
+    def _grown(self, mask, rings):
+        """The skin vertices (n,) bools within `rings` edge rings of `mask`."""
+        for _ in range(int(rings)):
+            mask = mask | ((self.adjacency @ mask.astype(float)) > 0)
+        return mask
+
     def _unfold(self, x, contact, pinned=None, zone=None):
         """Relax the displacement around folded triangles (Jacobi steps toward the neighbours' mean).
 
@@ -200,8 +206,7 @@ class ContactMixin:
             patch = np.zeros(self.n, bool)
             patch[corners] = True
             stuck = age[corners].max()
-            for _ in range(int(min(stuck, UNFOLD_RINGS))):
-                patch |= (self.adjacency @ patch.astype(float)) > 0
+            patch = self._grown(patch, min(stuck, UNFOLD_RINGS))
             if pinned is not None:                 # a fold that outlasts the rings frees its pinned corners
                 pinned[corners[age[corners] > UNFOLD_RINGS]] = False
             keep = UNFOLD_GIVE ** max(stuck - UNFOLD_RINGS, 0.0)

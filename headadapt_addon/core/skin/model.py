@@ -131,9 +131,7 @@ class SkinModel(JawMixin, ContactMixin):
         contact = Contact(bn, (rot, t), symmetric=self._symmetric(x))
         x = self._retract_from_bone(self._keep_out_of_bone(x, contact), contact)
         if pinned.any():                       # the closed margin held while the folds round it relax,
-            for _ in range(LID_ZONE_RINGS):
-                zone |= (self.adjacency @ zone.astype(float)) > 0
-            held = self._unfold(x.copy(), copy.deepcopy(contact), pinned, zone)
+            held = self._unfold(x.copy(), copy.deepcopy(contact), pinned, self._grown(zone, LID_ZONE_RINGS))
             if not len(self.flipped(held)):    # unless that leaves a fold (Fran's eyes, shut in the scan:
                 return held                    # her crumpled lid folds by the held middle): then as free skin
         return self._unfold(x, contact)
