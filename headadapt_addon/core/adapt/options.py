@@ -78,10 +78,13 @@ class AdaptOptions:
     anatomy_support: float = 0.024      # bone, eyes and pivots follow the levels of at least this support, m
     bad_fit_rms_mm: float = 1.5         # seen-skin distance RMS above this is a failed fit: 3x the
                                         # noise of a range scanner (0.1-0.5 mm), mm
-    dense_spacing: float = 0.002        # a scan whose median edge is shorter is paired by its vertices'
-                                        # tangent planes (off by under 0.05 mm there), not closest points, m
-                                        # (3 mm adapted 2-3 mm heads in two thirds the time, as accurately, but
-                                        # left a lid vertex of the CT 0.7 mm inside its transferred skull)
+    dense_spacing: float = 0.0025       # a scan whose median edge is shorter is paired by its vertices'
+                                        # tangent planes (off by curvature x spacing^2 / 2), not closest points,
+                                        # m. 2.5 mm: the scan-like bench heads (about 2 mm edges) fit as closely
+                                        # as with closest points (tuning heads: correspondence +0.001 mm, surface
+                                        # 0.271 against 0.279 mm), those 2 mm left on closest points in 0.79-0.86
+                                        # the time. 3 mm also took the CT (2.56 mm edges) and left a lid vertex
+                                        # of it 0.7 mm inside its transferred skull
     scan_cell: float = 0.001            # a scan whose median edge is under this is clustered to a grid of it
                                         # first (mesh/simplify.py), m; 0: never. Half the finest centre spacing:
                                         # the 1M bench head (0.77 mm edges) keeps 252k clusters and fits as

@@ -101,10 +101,11 @@ class ScanSide:
     def nearest_on_plane(self, points, exact_if_coarse=True):
         """(point, normal, distance, on a hole's border) per query point for ICP pairs: on a dense scan
         the nearest scan vertex's tangent plane (a fast stand-in for the closest surface point: off
-        by curvature x spacing^2 / 2, under 0.05 mm at 2 mm spacing), else the closest point with its
-        face's normal, on the border if that face touches it. At a tie (a point on a vertex or edge)
-        the face is the spatial backend's choice (numpy's: spatial.py's rule); the report judges
-        the point itself (metrics.distance_error), so its verdict does not hang on that choice.
+        by curvature x spacing^2 / 2, under 0.1 mm at 2.5 mm spacing where the skin curves no tighter
+        than a 3 cm radius), else the closest point with its face's normal, on the border if that face
+        touches it. At a tie (a point on a vertex or edge) the face is the spatial backend's choice
+        (numpy's: spatial.py's rule); the report judges the point itself (metrics.distance_error), so
+        its verdict does not hang on that choice.
         (Judging the pairs that way too, normal_at and on_border, moved the CT's pressed skull 1 mm
         off in depth at half an edge's border and its skin's p95 from 1.90 to 2.24 mm at one edge.)
         exact_if_coarse False: the tangent plane on any scan (level 0's affine map: off by curvature x
