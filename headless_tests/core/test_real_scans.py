@@ -161,6 +161,38 @@ def fran(shared_scans):
     return tpl, adapt.adapt(tpl, verts, tris, clicks)
 
 
+def test_calibrating_a_scan_wound_inward_leaves_no_worker_running(shared_scans, monkeypatch):
+    # the scan's tree is begun on a worker before the winding check; on a scan whose pieces are
+    # turned that tree is dropped. Left running, it outlived the calibrate operator, and Blender
+    # crashed while it was still being built (1 run in about 60 through the add-on). The tree is made
+    # slow here so that a worker still running when calibrate returns is seen.
+    import time
+
+    from headadapt_addon.core.adapt import AdaptOptions, pipeline
+    from headadapt_addon.core.adapt import scan as scan_side
+
+    made, build = [], scan_side._spatial_side
+
+    def slow_build(*args):
+        time.sleep(0.5)
+        return build(*args)
+
+    def started(*args):
+        made.append(start(*args))
+        return made[-1]
+
+    start = scan_side.start_spatial
+    monkeypatch.setattr(scan_side, "_spatial_side", slow_build)
+    monkeypatch.setattr(scan_side, "start_spatial", started)
+    monkeypatch.setattr(pipeline, "start_spatial", started)
+    verts, tris = meshio.read_mesh(shared_scans / "fran_cyberware" / "fran_cut.obj")[:2]
+    clicks = meshio.read_landmarks(realct.ROOT / "headless_tests" / "data" / "fran_fdps.json")
+    fit, *_, info = pipeline.calibrate(load_template(), verts, tris, clicks, AdaptOptions())
+    assert info["scan_pieces_turned"] == 1 and len(made) == 2      # the early tree, and the scan's own
+    assert made[0].done()
+    assert fit.scan.query is not None                              # the scan's own, waited for by its user
+
+
 def test_adapts_onto_a_real_range_scan_wound_inward(fran):
     # the Cyberware file winds its triangles so that its normals face into the head: turned round,
     # the levels find their pairs (before: 12 pairs at level 1, stuck at level 0, 5.6 mm median)
