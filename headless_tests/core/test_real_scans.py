@@ -164,7 +164,7 @@ def fran(shared_scans):
 def test_calibrating_a_scan_wound_inward_leaves_no_worker_running(shared_scans, monkeypatch):
     # the scan's tree is begun on a worker before the winding check; on a scan whose pieces are
     # turned that tree is dropped. Left running, it outlived the calibrate operator, and Blender
-    # crashed while it was still being built (1 run in about 60 through the add-on). The tree is made
+    # crashed while it was still being built (2 of about 230 runs through the add-on). The tree is made
     # slow here so that a worker still running when calibrate returns is seen.
     import time
 
