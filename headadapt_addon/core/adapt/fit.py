@@ -56,6 +56,11 @@ class Fit:
         self.V = tpl.skin.verts
         self.tris = tpl.skin.tris
         self.vert_w = tpl.region_weights[tpl.region]
+        # each skin vertex's weight in its surface pairs: its region's weight in E_d, unless
+        # AdaptOptions.pair_weights says otherwise
+        self.pair_w = self.vert_w.copy()
+        for region, weight in options.pair_weights:
+            self.pair_w[tpl.region_mask(region)] = weight
         self.face_w = face_weights(tpl)
         # what depends on the template alone is made once per template in a process (template_side)
         side = template_side(tpl, *_skin_entry(tpl, options))

@@ -56,6 +56,13 @@ class AdaptOptions:
                                         # closest points) and keep the one whose skin lies nearer the scan
                                         # (level0.affine_scan_distance): either pairing alone lost some
                                         # heads by a millimetre (docs/MEASUREMENTS.md)
+    pair_weights: tuple = (("ear_l", 1.0), ("ear_r", 1.0))
+                                        # (region, weight) of the skin's surface pairs where it differs from
+                                        # the region's weight in E_d (the paper's ears 0.2, sec 5.1): the ears
+                                        # are what holds the side of the face in place (seen on tuning head
+                                        # 42: the template ear 17 mm off, the cheek beside it 10 mm). At full
+                                        # weight, tuning heads 0-35: correspondence -0.083 mm paired (58 of 72
+                                        # better), seeds 36-49 -0.155 (23 of 28); surface unchanged
     affine_distance_clip: float = 0.005 # a vertex farther than this from the scan counts as this far, m
     affine_ridge: float = 1e-3          # how firmly the affine map's linear part is held to the identity
     rays_from_level: int = 2            # from this level on, pairs along the template's normal (sec 4.1)

@@ -76,7 +76,7 @@ def surface_pairs(fit: Fit, reach: float, along_normal: bool = False, mask: np.n
     exact False: closest points by the nearest vertex's tangent plane on any scan (ScanSide.nearest_on_plane)."""
     cur = fit.current()
     normals = geometry.vertex_normals(cur, fit.tris)
-    use = np.flatnonzero((fit.vert_w > 0) & ~fit.near_seam & ~fit.quiet & (True if mask is None else mask))
+    use = np.flatnonzero((fit.pair_w > 0) & ~fit.near_seam & ~fit.quiet & (True if mask is None else mask))
     if along_normal:
         hit = fit.scan.query.ray_cast(cur[use], normals[use], reach)
         f = np.where(hit.hit, hit.face, 0)
@@ -85,7 +85,7 @@ def surface_pairs(fit: Fit, reach: float, along_normal: bool = False, mask: np.n
     else:
         q, n, d, border = fit.scan.nearest_on_plane(cur[use], exact_if_coarse=exact)
     ok = (d < reach) & ~border & (np.einsum("ij,ij->i", normals[use], n) > 0.5)
-    w = fit.vert_w[use] / (1.0 + (np.minimum(d, reach) / (fit.options.robust_scale * reach)) ** 2)
+    w = fit.pair_w[use] / (1.0 + (np.minimum(d, reach) / (fit.options.robust_scale * reach)) ** 2)
     return Pairs(fit.V[use[ok]], q[ok], w[ok], use[ok])
 
 
