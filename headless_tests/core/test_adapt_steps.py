@@ -155,6 +155,20 @@ def test_surface_pairs_lie_on_the_scan_and_respect_reach(tpl, case):
         assert np.all(pairs.vertex >= 0) and np.allclose(pairs.p, tpl.skin.verts[pairs.vertex])
 
 
+def test_surface_pairs_weigh_the_ears_fully_while_e_d_keeps_the_paper_s_weights(tpl, case):
+    # AdaptOptions.pair_weights: the ears hold the side of the face in place, so their pairs weigh as
+    # much as the face's; the distance error E_d keeps the paper's region weights (ears 0.2, sec 5.1)
+    fits = {name: _fit(tpl, case, **kw)[0] for name, kw in (("default", {}), ("paper", {"pair_weights": ()}))}
+    pairs = {name: surface_pairs(fit, 0.02, along_normal=True) for name, fit in fits.items()}
+    assert np.array_equal(pairs["default"].vertex, pairs["paper"].vertex)
+    ear = tpl.region_mask("ear_l", "ear_r")[pairs["default"].vertex]
+    assert ear.sum() > 100
+    ratio = pairs["default"].w / pairs["paper"].w
+    assert np.allclose(ratio[ear], 1.0 / 0.2) and np.allclose(ratio[~ear], 1.0)
+    assert np.array_equal(fits["default"].vert_w, fits["paper"].vert_w)
+    assert np.isclose(fits["default"].vert_w[tpl.region_mask("ear_l")].max(), 0.2)
+
+
 def test_feature_mesh_pairs_split_triangles_and_pair_both_surfaces(tpl, case):
     # the case's head is an affine map of the template's whole skin (and a cheek bump): level 0 fits
     # all of it alike, scalp, forehead and neck included (AdaptOptions.affine_weights)
