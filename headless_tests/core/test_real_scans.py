@@ -171,7 +171,7 @@ def test_calibrating_a_scan_wound_inward_leaves_no_worker_running(shared_scans, 
     from headadapt_addon.core.adapt import AdaptOptions, pipeline
     from headadapt_addon.core.adapt import scan as scan_side
 
-    made, build = [], scan_side._spatial_side
+    made, build, start = [], scan_side._spatial_side, scan_side.start_spatial
 
     def slow_build(*args):
         time.sleep(0.5)
@@ -181,7 +181,6 @@ def test_calibrating_a_scan_wound_inward_leaves_no_worker_running(shared_scans, 
         made.append(start(*args))
         return made[-1]
 
-    start = scan_side.start_spatial
     monkeypatch.setattr(scan_side, "_spatial_side", slow_build)
     monkeypatch.setattr(scan_side, "start_spatial", started)
     monkeypatch.setattr(pipeline, "start_spatial", started)

@@ -48,6 +48,14 @@ class Pairs:
         return Pairs(self.p[mask], self.q[mask], self.w[mask], self.vertex[mask])
 
 
+def _by_region(tpl, base, weights):
+    """A copy of per-skin-vertex values `base` with each (region, weight) of `weights` set over its region."""
+    out = np.array(base, dtype=np.float64)
+    for region, weight in weights:
+        out[tpl.region_mask(region)] = weight
+    return out
+
+
 class Fit:
     """What the level loop shares: template, scan, options, the fitted level functions so far."""
 
@@ -58,9 +66,7 @@ class Fit:
         self.vert_w = tpl.region_weights[tpl.region]
         # each skin vertex's weight in its surface pairs: its region's weight in E_d, unless
         # AdaptOptions.pair_weights says otherwise
-        self.pair_w = self.vert_w.copy()
-        for region, weight in options.pair_weights:
-            self.pair_w[tpl.region_mask(region)] = weight
+        self.pair_w = _by_region(tpl, self.vert_w, options.pair_weights)
         self.face_w = face_weights(tpl)
         # what depends on the template alone is made once per template in a process (template_side)
         side = template_side(tpl, *_skin_entry(tpl, options))
@@ -69,9 +75,7 @@ class Fit:
         self.level0_memo = None     # (the clicks' bytes, level 0's map) of the last level-0 fit
         self.quiet = np.zeros(len(self.V), bool)     # vertices a level leaves to its smoothness term
         # each skin vertex's weight in the global affine map (AdaptOptions.affine_weights)
-        self.affine_weight = np.ones(len(self.V))
-        for region, weight in options.affine_weights:
-            self.affine_weight[tpl.region_mask(region)] = weight
+        self.affine_weight = _by_region(tpl, np.ones(len(self.V)), options.affine_weights)
         self._at_skin = {}
         self.warm = {}              # last coefficients per support: the next ICP round starts there
         self.factor = {}            # a sparse LU per support, once a level's system needed one
