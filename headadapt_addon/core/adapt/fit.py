@@ -70,7 +70,7 @@ class Fit:
         self.face_w = face_weights(tpl)
         # what depends on the template alone is made once per template in a process (template_side)
         side = template_side(tpl, *_skin_entry(tpl, options))
-        self.seam, self.near_seam, self.folds, self.ring, self.laplacian = side
+        self.seam, self.near_seam, self.folds, self.ring, self.laplacian, self.adjacency = side
         self.functions = []
         self.level0_memo = None     # (the clicks' bytes, level 0's map) of the last level-0 fit
         self.quiet = np.zeros(len(self.V), bool)     # vertices a level leaves to its smoothness term
@@ -187,7 +187,8 @@ def _basis_entry(tpl, options, sigma):
 
 
 def _skin_side(tpl, seam_band):
-    """(lip seam, skin near it, the fold check, each vertex with its ring, umbrella Laplacian)."""
+    """(lip seam, skin near it, the fold check, each vertex with its ring, umbrella Laplacian, the
+    neighbours' mean: geometry.neighbour_mean)."""
     V, tris = tpl.skin.verts, tpl.skin.tris
     seam = lip_seam(tpl)
     near_seam = cKDTree(V[seam]).query(V, distance_upper_bound=seam_band)[0] < np.inf
@@ -195,7 +196,7 @@ def _skin_side(tpl, seam_band):
     ring = (adjacency + sparse.identity(len(V))).tocsr()              # a vertex and its neighbours
     # umbrella Laplacian of the skin (x_i minus its neighbours' mean) for the smoothness term
     laplacian = (sparse.identity(len(V), format="csr") - adjacency).tocsr()
-    return seam, near_seam, geometry.FoldCheck(V, tris), ring, laplacian
+    return seam, near_seam, geometry.FoldCheck(V, tris), ring, laplacian, adjacency
 
 
 def _level_basis(V, laplacian, sigma, density):

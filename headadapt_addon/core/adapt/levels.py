@@ -3,6 +3,8 @@ its pairs with a smoothness term, as a few rounds of non-rigid ICP (fit_level)."
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from scipy import sparse
 from scipy.sparse.linalg import splu
@@ -13,6 +15,11 @@ from ..tol import TINY
 from . import rbf
 from .fit import Fit, Pairs, level_sigma
 from .pairs import surface_pairs
+
+try:        # the kernel of scipy's csr A @ v, called without its dispatch (a level's solve makes ~4,000)
+    from scipy.sparse._sparsetools import csr_matvec as _csr_matvec
+except ImportError:                 # a scipy that moved it: A @ v computes the same
+    _csr_matvec = None
 
 
 def csrbf_level(fit: Fit, pairs: Pairs, sigma: float, stiffness: float) -> rbf.CSRBF:
@@ -90,15 +97,45 @@ def fit_level(fit: Fit, clicks: Pairs, k: int, fixed: Pairs | None = None,
     return pairs, sigma
 
 
-def _cg_rtol_keyword():
-    """scipy 1.12 renamed cg's relative tolerance tol -> rtol (Debian's Blender 3.4 brings scipy 1.10)."""
-    import inspect
+def conjugate_gradients(A, b, x0, rtol, maxiter, psolve):
+    """Preconditioned conjugate gradients on a symmetric positive definite csr A for one right-hand side
+    b: (x, 0) once |b - A x| < rtol |b|, (x, maxiter) if not within maxiter steps. The steps of scipy's
+    cg (1.12 on), operation for operation, so the same answers to the bit; without its operator
+    wrappers and checks, whose Python took about a third of a level's solve time on 3,000 centres
+    (and held the GIL the three columns' threads share). psolve(r): the preconditioner applied to r."""
+    n = A.shape[0]
+    indptr, indices, data = A.indptr, A.indices, A.data
 
-    from scipy.sparse.linalg import cg
-    return "rtol" if "rtol" in inspect.signature(cg).parameters else "tol"
+    def matvec(v):
+        if _csr_matvec is None:
+            return A @ v
+        out = np.zeros(n)
+        _csr_matvec(n, n, indptr, indices, data, v, out)
+        return out
 
-
-_CG_RTOL = _cg_rtol_keyword()
+    x = np.zeros(n) if x0 is None else np.array(x0, dtype=np.float64)
+    bnrm2 = np.linalg.norm(b)
+    if bnrm2 == 0:
+        return b.copy(), 0
+    atol = rtol * bnrm2
+    r = b - matvec(x) if x.any() else b.copy()
+    rho_prev, p = None, None
+    for iteration in range(maxiter):
+        if math.sqrt(np.dot(r, r)) < atol:          # np.linalg.norm(r), as numpy computes it
+            return x, 0
+        z = psolve(r)
+        rho = np.dot(r, z)
+        if iteration > 0:
+            p *= rho / rho_prev
+            p += z
+        else:
+            p = z.copy()
+        q = matvec(p)
+        alpha = rho / np.dot(p, q)
+        x += alpha * p
+        r -= alpha * q
+        rho_prev = rho
+    return x, maxiter
 
 
 def solve_spd(A, b, x0=None, factor=None, rtol=1e-5, jacobi_steps=250, lu_steps=30):
@@ -110,24 +147,26 @@ def solve_spd(A, b, x0=None, factor=None, rtol=1e-5, jacobi_steps=250, lu_steps=
     CT) the smoothness term dominates and CG crawls (800 steps); after jacobi_steps the system is
     factorised (sparse LU), and the level's later rounds use that factorisation, passed back in as
     `factor`, to precondition CG, refactorising only if that fails within lu_steps."""
-    from scipy.sparse.linalg import LinearOperator, cg
+    A = A.tocsr()
+    b = np.asarray(b, dtype=np.float64)
 
-    def krylov(precondition, steps):
+    def krylov(psolve, steps):
         def column(c):
-            return cg(A, b[:, c], x0=None if x0 is None else x0[:, c], atol=0.0, maxiter=steps,
-                      M=precondition, **{_CG_RTOL: rtol})
+            return conjugate_gradients(A, np.ascontiguousarray(b[:, c]), None if x0 is None else x0[:, c],
+                                       rtol, steps, psolve)
 
-        # the columns side by side: scipy's sparse products release the GIL, so on 2 cores the three
-        # solves of a level take about 0.8 of their time one after another (the answers are the same)
+        # the columns side by side: the sparse products release the GIL, so on 2 cores the three solves
+        # of a level take about 0.8 of their time one after another (the answers are the same)
         solved = list(threads.pool().map(column, range(b.shape[1])))
         if any(info > 0 for _, info in solved):
             return None
         return np.stack([x for x, _ in solved], axis=1)
 
     if factor is None:
-        x = krylov(sparse.diags(1.0 / A.diagonal()), jacobi_steps)
+        inverse = 1.0 / A.diagonal()
+        x = krylov(lambda r: inverse * r, jacobi_steps)
     else:
-        x = krylov(LinearOperator(A.shape, matvec=lambda v: factor.solve(np.ascontiguousarray(v))), lu_steps)
+        x = krylov(lambda r: factor.solve(np.ascontiguousarray(r)), lu_steps)
     if x is not None:
         return x, factor
     factor = splu(A.tocsc(), permc_spec="MMD_AT_PLUS_A")

@@ -218,7 +218,7 @@ class Unfolding:
         n_folded = len(fit.folds(cur))                     # the template's FoldCheck, made once
         moved, left = 0, 0
         if n_folded:
-            cur, relaxed, left = geometry.unfold(fit.V, cur, fit.tris)
+            cur, relaxed, left = geometry.unfold(fit.V, cur, fit.tris, mean=fit.adjacency, folds=fit.folds)
             moved = int(relaxed.sum())
         self.last = time.perf_counter() - t0
         self.seconds += self.last

@@ -160,17 +160,19 @@ class FoldCheck:
         return np.flatnonzero((np.einsum("ij,ij->i", self.n0, n1) <= 0) & self.ok)
 
 
-def unfold(rest, x, t, rounds=40, steps=10):
+def unfold(rest, x, t, rounds=40, steps=10, mean=None, folds=None):
     """(x', moved mask, folded left): x (n,3) with its displacement from rest relaxed around the
     triangles still folded (Jacobi steps toward the neighbours' mean displacement, on their corners
     and a ring around them that widens every 4 rounds a fold resists) until nothing is folded or
     `rounds` run out; where folds are still left, the displacement over a widening ring around them
     is solved harmonic exactly (_harmonic); then each relaxed patch goes back toward x as far as it
-    can without a fold. Same frame and unit as x; the rest of x is untouched."""
+    can without a fold. Same frame and unit as x; the rest of x is untouched. mean, folds: the mesh's
+    neighbour_mean and its FoldCheck at rest if the caller keeps them (the adaptation does: made once
+    per template, they were a third of a level's unfold)."""
     x = np.array(x, dtype=np.float64)
     x0 = x.copy()
-    mean = neighbour_mean(t, len(x))
-    folds = FoldCheck(rest, t)
+    mean = neighbour_mean(t, len(x)) if mean is None else mean
+    folds = FoldCheck(rest, t) if folds is None else folds
     moved = np.zeros(len(x), bool)
     for k in range(rounds):
         bad = folds(x)
