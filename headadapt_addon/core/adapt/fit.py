@@ -77,6 +77,7 @@ class Fit:
         # each skin vertex's weight in the global affine map (AdaptOptions.affine_weights)
         self.affine_weight = _by_region(tpl, np.ones(len(self.V)), options.affine_weights)
         self._at_skin = {}
+        self._between = None       # (functions and points, their deformed places) of the last at()
         self.warm = {}              # last coefficients per support: the next ICP round starts there
         self.factor = {}            # a sparse LU per support, once a level's system needed one
 
@@ -121,12 +122,18 @@ class Fit:
         return self.V + sum((self._at_skin[id(f)][1] for f in self.functions), np.zeros_like(self.V))
 
     def at(self, pairs):
-        """The deformed template at the pairs' template points (the skin's vertices looked up)."""
+        """The deformed template at the pairs' template points (the skin's vertices looked up). The points
+        between vertices (a level's feature-mesh, curvature and click pairs, the same in each of its
+        rounds, under the same levels below) are evaluated once per set of level functions."""
         cur = self.current()
         out = np.empty_like(pairs.p)
         on = pairs.vertex >= 0
         out[on] = cur[pairs.vertex[on]]
-        out[~on] = pairs.p[~on] + self.displacement(pairs.p[~on])
+        between = pairs.p[~on]
+        key = (tuple(self.functions), between.tobytes())      # the functions themselves: no id reused
+        if self._between is None or self._between[0] != key:
+            self._between = (key, between + self.displacement(between))
+        out[~on] = self._between[1]
         return out
 
 

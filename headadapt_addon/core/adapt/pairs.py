@@ -10,17 +10,18 @@ from .fit import Fit, Pairs, spread
 from .scan import ScanSide
 
 
-def feature_mesh_pairs(fit: Fit, mesh: dict, reach: float) -> Pairs:
+def feature_mesh_pairs(fit: Fit, mesh: dict, reach: float, query: spatial.MeshQuery | None = None) -> Pairs:
     """Pairs from feature-mesh subdivision (sec 4.1, Kahler et al.): the deformed template and the scan
     share the feature mesh (its vertices are FP pairs), so one ray from each live triangle's
     barycentre along its normal meets both surfaces: a new pair, and the triangle splits in three.
-    `mesh` is (fm_q scan-side vertices, fm_t triangles, dead mask) and is updated in place."""
+    `mesh` is (fm_q scan-side vertices, fm_t triangles, dead mask) and is updated in place. query: the
+    deformed template's MeshQuery, if the caller has it (current_query)."""
     fm_q, fm_t, dead = mesh["q"], mesh["t"], mesh["dead"]
     live = np.flatnonzero(~dead)
     if not len(live):
         return Pairs.empty()
     cur = fit.current()
-    cur_query = spatial.MeshQuery(cur, fit.tris, backend=fit.options.backend)
+    cur_query = current_query(fit) if query is None else query
     cur_n = geometry.face_normals(cur, fit.tris)
     tri = fm_t[live]
     bq = fm_q[tri].mean(axis=1)
@@ -47,9 +48,16 @@ def feature_mesh_pairs(fit: Fit, mesh: dict, reach: float) -> Pairs:
     return Pairs(tp, hs.point[ok], np.full(len(tp), fit.options.feature_weight))
 
 
-def curvature_pairs(fit: Fit, box: np.ndarray, count: int, reach: float, spacing: float) -> Pairs:
+def current_query(fit: Fit) -> spatial.MeshQuery:
+    """Closest points and rays on the deformed template as the levels so far leave it."""
+    return spatial.MeshQuery(fit.current(), fit.tris, backend=fit.options.backend)
+
+
+def curvature_pairs(fit: Fit, box: np.ndarray, count: int, reach: float, spacing: float,
+                    query: spatial.MeshQuery | None = None) -> Pairs:
     """Pairs from the scan's mean-curvature extremes (sec 4.1, appendix: Meyer et al.) inside the
-    paper's face box, `spacing` apart, matched to the current template by rays along the scan normal."""
+    paper's face box, `spacing` apart, matched to the current template by rays along the scan normal.
+    query: the deformed template's MeshQuery, if the caller has it (current_query)."""
     scan = fit.scan
     H, valid = scan.curvature(box)
     cand = np.flatnonzero(valid & ~scan.boundary_verts & box)    # not by a border (paper sec 4.1)
@@ -58,7 +66,7 @@ def curvature_pairs(fit: Fit, box: np.ndarray, count: int, reach: float, spacing
     order = cand[np.argsort(-np.abs(H[cand]))]
     src = order[spread(scan.verts[order[: count * 6]], spacing)[:count]]
     cur = fit.current()
-    hit = spatial.MeshQuery(cur, fit.tris, backend=fit.options.backend).ray_cast(scan.verts[src], scan.vertex_normals[src], reach)
+    hit = (current_query(fit) if query is None else query).ray_cast(scan.verts[src], scan.vertex_normals[src], reach)
     f = np.where(hit.hit, hit.face, 0)
     ok = hit.hit & (fit.face_w[f] > 0)
     ok &= np.einsum("ij,ij->i", geometry.face_normals(cur, fit.tris)[f], scan.vertex_normals[src]) > 0.7

@@ -27,7 +27,7 @@ from .level0 import feature_mesh, level_zero
 from .levels import fit_level
 from .options import FACE_REGIONS, SCANNER_VISIBLE_PARTS, AdaptOptions, AdaptResult, Level
 from .outcome import fit_outcome
-from .pairs import curvature_pairs, face_box, feature_mesh_pairs
+from .pairs import current_query, curvature_pairs, face_box, feature_mesh_pairs
 from .scan import ScanSide, start_spatial
 
 
@@ -94,11 +94,13 @@ def _adapt(tpl, scan_verts, scan_tris, scan_fdps, options, markers, progress):
         t0 = time.perf_counter()
         fixed = Pairs.empty()
         reach = fit.reach(k)
+        # the deformed template's tree, made once for both searches (the skin does not move between them)
+        query = current_query(fit) if options.use_feature_mesh or options.use_curvature else None
         if options.use_feature_mesh:
-            fixed = fixed + feature_mesh_pairs(fit, fmesh, reach)
+            fixed = fixed + feature_mesh_pairs(fit, fmesh, reach, query)
         if options.use_curvature:
             fixed = fixed + curvature_pairs(fit, box, options.curvature_points * 2 ** (k - 1),
-                                            min(reach, options.curvature_reach), fit.threshold / 2 ** (k + 1))
+                                            min(reach, options.curvature_reach), fit.threshold / 2 ** (k + 1), query)
         say(0.1 + 0.85 * (k + 0.5) / (options.max_levels + 1), f"level {k}: fitting")
         pairs, sigma = fit_level(fit, clicks, k, fixed)          # csrbf_level in rounds of ICP
         # a level is judged as it would be delivered: its folds relaxed (step 4 below)
