@@ -380,3 +380,35 @@ def test_a_level_s_solve_matches_a_direct_solve_warm_or_cold_and_by_its_factoris
     B = (A + sparse.diags(rng.uniform(0.0, 0.02, n))).tocsr()    # the next round: a little different
     x, again = solve_spd(B, b, x, factor)
     assert again is factor and np.abs(x - exact(B)).max() < 1e-3 * scale
+
+
+def test_a_level_s_conjugate_gradients_take_scipy_s_steps():
+    """conjugate_gradients (a level's solve without scipy's wrappers) gives scipy's cg answers to the
+    bit, cold and warm, with the diagonal or another preconditioner, and says when it ran out of
+    steps; so the adapted heads are the same as with scipy's cg."""
+    import inspect
+
+    from scipy import sparse
+    from scipy.sparse.linalg import LinearOperator, cg
+
+    from headadapt_addon.core.adapt.levels import conjugate_gradients
+
+    if "rtol" not in inspect.signature(cg).parameters:
+        pytest.skip("scipy before 1.12: its cg was another implementation")
+    rng = np.random.default_rng(5)
+    n = 300
+    lap = sparse.diags([-np.ones(n - 1), 2.0 * np.ones(n), -np.ones(n - 1)], [-1, 0, 1])
+    A = (lap.T @ lap + sparse.diags(rng.uniform(0.05, 1.0, n))).tocsr()
+    b = rng.standard_normal(n)
+    inverse = 1.0 / A.diagonal()
+    shifted = 1.0 / (A.diagonal() + 1.0)
+    for x0 in (None, rng.standard_normal(n)):
+        for pre, M in ((inverse, sparse.diags(inverse)),
+                       (shifted, LinearOperator(A.shape, matvec=lambda v: shifted * v))):
+            for steps in (500, 7):
+                want, info = cg(A, b, x0=None if x0 is None else x0.copy(), rtol=1e-6, atol=0.0,
+                                maxiter=steps, M=M)
+                got, status = conjugate_gradients(A, b, x0, 1e-6, steps, lambda r, pre=pre: pre * r)
+                assert np.array_equal(got, want) and status == info
+                assert (status == 0) == (steps == 500)
+    assert conjugate_gradients(A, np.zeros(n), None, 1e-6, 10, lambda r: r)[1] == 0
