@@ -153,9 +153,9 @@ def report(rows, methods, set_name):
               + " | ".join(f"{_fmt(r[m]):^29s}" for m in methods))
     med = {m: {k: float(np.median([r[m][k] for r in rows])) for k in rows[0][m]} for m in methods}
     print(f"{'median':>21s}    " + " | ".join(f"{_fmt(med[m]):^29s}" for m in methods))
-    print(f"the true skin itself lies {np.median([r['true_surf'] for r in rows]):.2f} mm RMS from the scan on the "
-          f"seen face (median; {min(r['true_surf'] for r in rows):.2f} to {max(r['true_surf'] for r in rows):.2f}): "
-          "the surface figure's floor")
+    floor = np.array([r["true_surf"] for r in rows])
+    print(f"the true skin itself lies {np.median(floor):.2f} mm RMS from the scan on the seen face (median; "
+          f"{floor.min():.2f} to {floor.max():.2f}): the surface figure's floor")
     if "nricp_amberg" in methods:
         n = len(rows)
         corr = sum(r["headadapt"]["corr_rms"] < r["nricp_amberg"]["corr_rms"] for r in rows)
@@ -181,9 +181,7 @@ def synthetic(args):
         made = time.perf_counter() - t0
         seen = face & head.true_on_scan
         query = spatial.MeshQuery(head.scan_verts, head.scan_tris, backend=testheads.BACKEND)
-        # the surface figure's floor: the true skin's own distance from the scan (the scan's noise, and the
-        # scan is the head Catmull-Clark subdivided, its smooth surface, while the template's vertices are
-        # the control points: 0.31 mm RMS with no noise at all on heads 0 and 106)
+        # the surface figure's floor (the module's "surf RMS"): the true skin's own distance from the scan
         true_surf = measure(tpl, head, head.true_template, seen, query)["surf_rms"]
         for name in sets:
             clicks = {k: head.fdp_clicks[k] for k in CLICK_SETS[name] if k in head.fdp_clicks}
