@@ -24,6 +24,16 @@ def test_odd_edges_are_the_border_of_a_manifold_mesh():
     assert np.array_equal(geometry.odd_edges(cut), geometry.boundary_edges(cut))
 
 
+def test_a_cell_s_rank_is_np_unique_s_inverse():
+    rng = np.random.default_rng(3)
+    # keys in runs, as a scan's vertex order gives them, with repeats and a negative one
+    key = np.concatenate([np.sort(rng.integers(-5, 400, 300)), rng.integers(0, 50, 200), [7, 7, 7]])
+    count, rank = simplify.unique_inverse(key)
+    values, inverse = np.unique(key, return_inverse=True)
+    assert count == len(values) and np.array_equal(rank, inverse)
+    assert simplify.unique_inverse(np.zeros(0, np.int64))[0] == 0
+
+
 def test_clustering_keeps_the_surface_the_winding_and_the_border():
     radius = 0.1
     p, t = _sphere(radius)

@@ -60,7 +60,7 @@ def _edge_keys(t):
     a, b = t.T.ravel(), t[:, [1, 2, 0]].T.ravel()
     n = int(t.max()) + 1
     key = np.minimum(a, b) * n + np.maximum(a, b)
-    key.sort()
+    key.sort(kind="stable")         # the same values; timsort keeps the runs a mesh's order has (0.8x)
     return key, n
 
 
