@@ -75,6 +75,24 @@ def test_the_tree_holds_every_triangle_in_boxes_that_hold_it(leaf_size):
         assert np.all(corners >= lo[node][:, None]) and np.all(corners <= hi[node][:, None])
 
 
+@pytest.mark.parametrize("leaf_size", [2, 3, 4])
+def test_the_walk_two_levels_a_step_keeps_the_leaves_the_walk_level_by_level_keeps(skin, leaf_size, monkeypatch):
+    verts, tris = skin
+    tree = bvh.TriangleBVH(verts, tris, leaf_size=leaf_size)
+    rng = np.random.default_rng(leaf_size)
+    o = verts[rng.choice(len(verts), 300)] + rng.normal(0, 0.003, (300, 3))
+    d = rng.normal(size=(300, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    reach = rng.uniform(0.001, 0.05, 300)
+    walk = bvh.TriangleBVH._walk
+    got = tree.ray_candidates(o, d, -reach, reach), tree.closest(o)
+    monkeypatch.setattr(bvh.TriangleBVH, "_walk", lambda self, count, keep_fn: walk(self, count, keep_fn, stride=1))
+    want = tree.ray_candidates(o, d, -reach, reach), tree.closest(o)
+    assert tree.depth >= 3 and all(np.array_equal(a, b) for a, b in zip(got[0], want[0]))
+    assert len(got[0][0]) > 3 * len(o)
+    assert all(np.array_equal(a, b) for a, b in zip(got[1], want[1]))
+
+
 @pytest.mark.parametrize("mesh", ["skin", "uneven"])
 def test_closest_points_are_the_brute_force_ones(skin, mesh):
     verts, tris = skin if mesh == "skin" else uneven_mesh()

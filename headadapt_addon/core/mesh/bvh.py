@@ -118,14 +118,23 @@ class TriangleBVH:
         return self._vtree
 
     # --- walking the tree -------------------------------------------------------------------------
-    def _walk(self, count, keep_fn):
+    def _walk(self, count, keep_fn, stride=2):
         """(owner, leaf) pairs reached from the root, owners 0..count-1 in increasing order, keeping at
-        each level the pairs keep_fn(owner, level, node) says can hold an answer."""
+        each level the pairs keep_fn(owner, level, node) says can hold an answer.
+
+        `stride` levels a step (a node's four grandchildren; the last step shorter if the depth asks):
+        a box holds its descendants' boxes, so a leaf is kept exactly when the walk level by level
+        keeps it (rounding too: the slab and gap tests are monotone in a box's bounds), and half the
+        steps cost less than the boxes they skip (a head's rays: about 0.85 of the walks' time)."""
         owner = np.arange(count)
         node = np.zeros(count, np.int64)
         keep = keep_fn(owner, 0, node)
-        for level in range(1, self.depth + 1):
-            owner, node = np.repeat(owner[keep], 2), (2 * node[keep][:, None] + np.array([0, 1])).ravel()
+        level = 0
+        while level < self.depth:
+            step = min(stride, self.depth - level)
+            fan = 1 << step
+            owner, node = np.repeat(owner[keep], fan), (fan * node[keep][:, None] + np.arange(fan)).ravel()
+            level += step
             keep = keep_fn(owner, level, node)
         return owner[keep], node[keep]
 
