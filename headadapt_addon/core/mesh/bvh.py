@@ -120,28 +120,20 @@ class TriangleBVH:
     # --- walking the tree -------------------------------------------------------------------------
     def _walk(self, count, keep_fn, stride=2):
         """(owner, leaf) pairs reached from the root, owners 0..count-1 in increasing order, keeping at
-        each level the pairs keep_fn(owner, level, node) says can hold an answer.
-
-        `stride` levels a step (a node's four grandchildren; the last step shorter if the depth asks):
-        a box holds its descendants' boxes, so a leaf is kept exactly when the walk level by level
-        keeps it (rounding too: the slab and gap tests are monotone in a box's bounds), and half the
-        steps cost less than the boxes they skip (a head's rays: about 0.85 of the walks' time)."""
-        owner = np.arange(count)
-        node = np.zeros(count, np.int64)
-        keep = keep_fn(owner, 0, node)
-        level = 0
-        while level < self.depth:
-            step = min(stride, self.depth - level)
-            fan = 1 << step
+        each level the pairs keep_fn(owner, level, node) says can hold an answer. `stride` levels a step
+        (a node's grandchildren at once): a box holds its descendants' (the tests are monotone in its
+        bounds), so the leaves kept are the level-by-level walk's, at 0.85 of its time on a head's rays."""
+        owner, node = np.arange(count), np.zeros(count, np.int64)
+        keep, level = keep_fn(owner, 0, node), 0
+        for deeper in [min(k, self.depth) for k in range(stride, self.depth + stride, stride)]:
+            fan = 1 << (deeper - level)
             owner, node = np.repeat(owner[keep], fan), (fan * node[keep][:, None] + np.arange(fan)).ravel()
-            level += step
-            keep = keep_fn(owner, level, node)
+            keep, level = keep_fn(owner, deeper, node), deeper
         return owner[keep], node[keep]
 
     def _slots(self, owner, leaf):
         """(owner, slot) of every triangle in the given leaves (owner order kept)."""
-        start = self.leaf_start[leaf]
-        count = self.leaf_start[leaf + 1] - start
+        start, count = self.leaf_start[leaf], self.leaf_start[leaf + 1] - self.leaf_start[leaf]
         owner = np.repeat(owner, count)
         first = np.repeat(np.cumsum(count) - count, count)
         return owner, np.arange(len(owner)) - first + np.repeat(start, count)
@@ -254,9 +246,7 @@ class TriangleBVH:
         nothing there go on to the next shell and finally to their whole segment; a hit inside a shell
         is the nearest, since every hit nearer was a candidate."""
         n = len(o)
-        t_out = np.full(n, np.nan)
-        f_out = np.zeros(n, np.int64)
-        bary_out = np.zeros((n, 3))
+        t_out, f_out, bary_out = np.full(n, np.nan), np.zeros(n, np.int64), np.zeros((n, 3))
         if not self.m or not n:
             return t_out, f_out, bary_out
         todo = np.arange(n)
