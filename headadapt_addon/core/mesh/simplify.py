@@ -87,12 +87,13 @@ def cluster(verts, tris, cell):
     merged = np.stack([np.bincount(inv, weights=inside[:, k], minlength=n) for k in range(3)], axis=1) / count[:, None]
     if not every:                                         # the cluster of every vertex (unused: never read)
         inv = _spread(inv, used)
-    t = inv[tris]
+    # the triangles' clusters as int32 while they are many (a 1M scan's 2M: 0.03 against 0.1 s)
+    t = inv.astype(np.int32)[tris] if n < 1 << 31 else inv[tris]
     t = t[(t[:, 0] != t[:, 1]) & (t[:, 1] != t[:, 2]) & (t[:, 2] != t[:, 0])]
     border = threads.pool().submit(geometry.odd_edges, t)  # beside the duplicates' sort (numpy's sorts
-    s = np.sort(t, axis=1)                                # release the GIL: 0.07 s of 0.4 on a 1M scan)
+    s = np.sort(t, axis=1).astype(np.int64)               # release the GIL: 0.07 s of 0.4 on a 1M scan)
     if n ** 3 < 1 << 62:
         _, first = np.unique((s[:, 0] * n + s[:, 1]) * n + s[:, 2], return_index=True)
     else:                                                 # too many clusters for one key: rows
         _, first = np.unique(s, axis=0, return_index=True)
-    return merged, t[np.sort(first)], border.result()
+    return merged, t[np.sort(first)].astype(np.int64), border.result()
