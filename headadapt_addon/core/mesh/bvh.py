@@ -133,7 +133,8 @@ class TriangleBVH:
 
     def _slots(self, owner, leaf):
         """(owner, slot) of every triangle in the given leaves (owner order kept)."""
-        start, count = self.leaf_start[leaf], self.leaf_start[leaf + 1] - self.leaf_start[leaf]
+        start = self.leaf_start[leaf]
+        count = self.leaf_start[leaf + 1] - start
         owner = np.repeat(owner, count)
         first = np.repeat(np.cumsum(count) - count, count)
         return owner, np.arange(len(owner)) - first + np.repeat(start, count)
