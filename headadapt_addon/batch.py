@@ -335,7 +335,7 @@ def _write_blend(path, tpl, result, verts, tris, points, report, log=print):
     try:
         shown = [-1]
 
-        def baking(fraction, name):          # one line per tenth of the bake (a bake takes 20-50 s)
+        def baking(fraction, name):          # one line per tenth of the bake (a bake takes 3 to 8 s)
             tenth = int(10 * fraction)
             if tenth > shown[0]:
                 shown[0] = tenth
@@ -376,8 +376,10 @@ def output_names(scans: list[pathlib.Path]) -> list[str]:
 
 # One BLAS thread per scan process: folder mode runs a process per scan side by side, and OpenBLAS's
 # helper threads spin without end (a scan never finishing, not an out-of-memory) once --memory-gb's
-# address-space limit stops their buffers being allocated.
-SCAN_PROCESS_THREADS = {"OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+# address-space limit stops their buffers being allocated. Nor a bake helper (core/skin/parallel.py):
+# the scans side by side keep the cores busy already.
+SCAN_PROCESS_THREADS = {"OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1",
+                        "HEADADAPT_BAKE_HELPER": "0"}
 
 
 def _child_command(job: dict) -> list[str]:

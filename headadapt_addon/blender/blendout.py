@@ -96,7 +96,8 @@ def apply_bake(root, keys, timing, kinds, preview=True):
     animation.write_shape_keys(root, keys)
     if preview and "expression" in kinds:
         animation.preview_action(root)
-    return {"keys": len(keys), "build_s": timing["build_s"], "per_key_s": timing["per_key_s"]}
+    return {"keys": len(keys), "build_s": timing["build_s"], "per_key_s": timing["per_key_s"],
+            "helper_keys": timing.get("helper_keys", 0)}
 
 
 def add_camera_and_light(root, target_scene):

@@ -64,6 +64,7 @@ class Template:
     meta: dict           # the whole template.json
     bone_skin_index: dict = dataclasses.field(default_factory=dict)   # bone -> (n_bone,) skin vertex it was offset from
     arkit: dict = dataclasses.field(default_factory=dict)   # arkit.json: the ARKit units' fitted activations
+    directory: str | None = None   # the folder it was loaded from (a bake's helper process loads it there)
 
     @property
     def skin(self):
@@ -147,4 +148,4 @@ def load_template(directory: str | pathlib.Path | None = None) -> Template:
                     region_weights=np.array([r["weight"] for r in regions]),
                     skin_mirror=arrays["skin_mirror"], meta=meta,
                     bone_skin_index={b: arrays[f"{b}_skin_index"] for b in BONES if f"{b}_skin_index" in arrays},
-                    arkit=arkit)
+                    arkit=arkit, directory=str(directory))

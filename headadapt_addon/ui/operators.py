@@ -519,8 +519,9 @@ class BakeRun(Run):
         from ..blender import blendout
         jobs.show_progress(context, 1.0, "writing the shape keys")
         timing = blendout.apply_bake(self.root, *value, self.kinds, self.preview)
+        cores = f", {timing['helper_keys']} of them on a second core" if timing["helper_keys"] else ""
         report({"INFO"}, f"baked {timing['keys']} shape keys on {self.root.name!r} "
-                         f"({timing['per_key_s'] * 1000:.0f} ms per key)")
+                         f"({timing['per_key_s'] * 1000:.0f} ms per key{cores})")
         return {"FINISHED"}
 
 

@@ -50,29 +50,24 @@ def closest_on_triangles(p, a, b, c):
     va = d3 * d6 - d5 * d4
     vb = d5 * d2 - d1 * d6
     vc = d1 * d4 - d3 * d2
-    n = len(p)
-    bary = np.zeros((n, 3))
-    done = np.zeros(n, bool)
-
-    def put(mask, u, v, w):
-        m = mask & ~done
-        bary[m, 0], bary[m, 1], bary[m, 2] = u[m] if np.ndim(u) else u, v[m] if np.ndim(v) else v, w[m] if np.ndim(w) else w
-        done[m] = True
-
-    one, zero = np.ones(n), np.zeros(n)
-    put((d1 <= 0) & (d2 <= 0), one, zero, zero)                        # vertex a
-    put((d3 >= 0) & (d4 <= d3), zero, one, zero)                       # vertex b
-    put((d6 >= 0) & (d5 <= d6), zero, zero, one)                       # vertex c
+    # the first region that holds the point (Ericson's order), its barycentrics from that region's formula
+    region = np.select([(d1 <= 0) & (d2 <= 0), (d3 >= 0) & (d4 <= d3), (d6 >= 0) & (d5 <= d6),
+                        (vc <= 0) & (d1 >= 0) & (d3 <= 0), (vb <= 0) & (d2 >= 0) & (d6 <= 0),
+                        (va <= 0) & (d4 - d3 >= 0) & (d5 - d6 >= 0)], [0, 1, 2, 3, 4, 5], 6)
+    bary = np.zeros((len(p), 3))
+    bary[region == 0, 0] = 1.0                                            # vertex a
+    bary[region == 1, 1] = 1.0                                            # vertex b
+    bary[region == 2, 2] = 1.0                                            # vertex c
     with np.errstate(divide="ignore", invalid="ignore"):
-        s = d1 / (d1 - d3)
-        put((vc <= 0) & (d1 >= 0) & (d3 <= 0), 1 - s, s, zero)           # edge ab
-        s = d2 / (d2 - d6)
-        put((vb <= 0) & (d2 >= 0) & (d6 <= 0), 1 - s, zero, s)           # edge ac
-        s = (d4 - d3) / ((d4 - d3) + (d5 - d6))
-        put((va <= 0) & (d4 - d3 >= 0) & (d5 - d6 >= 0), zero, 1 - s, s)  # edge bc
-        denom = va + vb + vc
-        v_, w_ = vb / denom, vc / denom
-        put(np.ones(n, bool), 1 - v_ - w_, v_, w_)                       # inside
+        for r, (i, j), num, den in ((3, (0, 1), d1, d1 - d3), (4, (0, 2), d2, d2 - d6),          # edges ab, ac
+                                    (5, (1, 2), d4 - d3, (d4 - d3) + (d5 - d6))):               # edge bc
+            at = region == r
+            s = num[at] / den[at]
+            bary[at, i], bary[at, j] = 1 - s, s
+        at = region == 6                                                  # inside
+        denom = va[at] + vb[at] + vc[at]
+        v_, w_ = vb[at] / denom, vc[at] / denom
+        bary[at, 0], bary[at, 1], bary[at, 2] = 1 - v_ - w_, v_, w_
     bary = np.nan_to_num(bary)
     flat = np.flatnonzero(flat_triangles(ab, ac))           # degenerate: the closest of its three edges
     if len(flat):

@@ -16,7 +16,7 @@ from scipy.spatial.transform import Rotation
 
 from .. import mpeg4
 from ..anatomy import surface_point
-from . import arkit, drive
+from . import arkit, drive, parallel
 from .build import build
 
 JAW_FOLLOWERS = ("mandible", "teeth_lower", "tongue")
@@ -53,21 +53,38 @@ def _fap_units(fap, tpl, parts, moved, fapus):
     return float(d @ np.asarray(fap.direction) / fapus[fap.unit])
 
 
-def bake(tpl, anatomy=None, kinds=("expression", "viseme", "fap", "arkit"), progress=None):
+def bake(tpl, anatomy=None, kinds=("expression", "viseme", "fap", "arkit"), progress=None, helper=True):
     """Baked keys [BakedKey] for the template or an adapted Anatomy, and timings {build_s, per_key_s}.
-    kinds: "expression", "viseme", "fap" (MPEG-4), "arkit" (ARKit's 52, core.skin.arkit)."""
-    t0 = time.perf_counter()
-    model = build(tpl, anatomy)
-    build_s = time.perf_counter() - t0
-    parts = anatomy.parts if anatomy is not None else {k: p.verts for k, p in tpl.parts.items()}
-    fapus = anatomy.fapus if anatomy is not None else tpl.meta["fapus"]
+    kinds: "expression", "viseme", "fap" (MPEG-4), "arkit" (ARKit's 52, core.skin.arkit). The skin's
+    equilibria run on two cores where they can (parallel.equilibria; helper=False: on this one)."""
     jobs = [r for r in drive.shape_key_recipes() if r[1] in kinds]
     if "fap" in kinds:
         jobs += [(name, "fap_rigid", spec) for name, spec in drive.FAP_RIGID.items()]
-    n_jobs = len(jobs) + (len(arkit.UNITS) if "arkit" in kinds else 0)
-    keys = []
+    arkit_units = arkit.UNITS if "arkit" in kinds else ()
+    # every key's skin first (the expensive part, on two cores), then the keys in their order
+    skin_jobs = [(name, recipe) for name, kind, recipe in jobs if kind != "fap_rigid"]
+    n_keys = len(skin_jobs)
+    skin_jobs += [(unit, controls) for unit in arkit_units if (controls := arkit.recipe(tpl, unit))]
+    recipes = [r for _, r in skin_jobs]
+    t0 = time.perf_counter()
+    proc = parallel.start(tpl.directory, recipes, anatomy) if helper else None    # builds while this builds
+    try:
+        model = build(tpl, anatomy)
+    except BaseException:
+        if proc:
+            parallel.stop(proc)
+        raise
+    build_s = time.perf_counter() - t0
+    parts = anatomy.parts if anatomy is not None else {k: p.verts for k, p in tpl.parts.items()}
+    fapus = anatomy.fapus if anatomy is not None else tpl.meta["fapus"]
     t1 = time.perf_counter()
-    for i, (name, kind, recipe) in enumerate(jobs):
+    n_jobs = len(jobs) + len(arkit_units)
+    solved, helped = parallel.equilibria(model, recipes, proc, progress and (
+        lambda f, i: progress(f * len(skin_jobs) / max(n_jobs, 1), skin_jobs[i][0])))
+    names = [name for name, _ in skin_jobs]
+    skins, unit_skins = dict(zip(names[:n_keys], solved[:n_keys])), dict(zip(names[n_keys:], solved[n_keys:]))
+    keys = []
+    for name, kind, recipe in jobs:
         if kind == "fap_rigid":
             part, how, axis, amount = recipe
             v = parts[part]
@@ -81,7 +98,7 @@ def bake(tpl, anatomy=None, kinds=("expression", "viseme", "fap", "arkit"), prog
             units = (amount / mpeg4.AU_RAD) if how == "rotate" else _fap_units(fap, tpl, parts, moved, fapus)
             keys.append(BakedKey(name, "fap", moved, units))
         else:
-            moved = {"skin": model.equilibrium(recipe)}
+            moved = {"skin": skins[name]}
             if recipe.keys() & {"jaw_open", "jaw_thrust", "jaw_shift"}:
                 rot, t = model.mandible_transform(recipe)
                 for part in JAW_FOLLOWERS:
@@ -90,12 +107,10 @@ def bake(tpl, anatomy=None, kinds=("expression", "viseme", "fap", "arkit"), prog
             if kind == "fap":
                 units = _fap_units(mpeg4.FAP_BY_NAME[name], tpl, parts, moved, fapus)
             keys.append(BakedKey(name, kind, moved, units))
-        if progress:
-            progress((i + 1) / n_jobs, name)
-    if "arkit" in kinds:
-        done = len(jobs)
-        for name, moved in arkit.bake_units(tpl, model, parts, JAW_FOLLOWERS, progress and (
-                lambda f, unit: progress((done + f * len(arkit.UNITS)) / n_jobs, unit))):
+    if arkit_units:
+        for name, moved in arkit.bake_units(tpl, model, parts, JAW_FOLLOWERS, skins=unit_skins):
             keys.append(BakedKey(name, "arkit", moved))
+    if progress:
+        progress(1.0, keys[-1].name if keys else "")
     per_key = (time.perf_counter() - t1) / max(n_jobs, 1)
-    return keys, {"build_s": build_s, "per_key_s": per_key, "keys": len(keys), "model": model}
+    return keys, {"build_s": build_s, "per_key_s": per_key, "keys": len(keys), "helper_keys": helped, "model": model}

@@ -73,14 +73,15 @@ class ContactMixin:
     def _winding(self, pts, rot, t):
         """Winding number (k,) of skin points (k,3) in the bone (cranium, mandible at (rot, t))."""
         _, _, v_cr, v_md, bone_t = self.bone
-        verts = np.vstack([v_cr, self.on_jaw(v_md, rot, t)])
         # exact fast winding numbers (core/mesh/winding.py, the brute force's up to rounding), the
-        # bone closed once per model and refit as the jaw moves
-        fast = self.__dict__.get("_bone_winding")
-        if fast is None or fast.tris is not bone_t and not np.array_equal(fast.tris, bone_t):
-            fast = self.__dict__["_bone_winding"] = FastWinding(verts, bone_t, slack=JAW_SLACK)
-        else:
-            fast.refit(verts)
+        # bone closed once per model and refit when the jaw moved (the same jaw: the same bone, as is)
+        fast, made_for, jaw = (self.__dict__.get(k) for k in ("_bone_winding", "_bone_winding_tris", "_bone_jaw"))
+        if fast is None or made_for is not bone_t:
+            fast = FastWinding(np.vstack([v_cr, self.on_jaw(v_md, rot, t)]), bone_t, slack=JAW_SLACK)
+            self.__dict__.update(_bone_winding=fast, _bone_winding_tris=bone_t)
+        elif not (np.array_equal(jaw[0], rot) and np.array_equal(jaw[1], t)):
+            fast.refit(np.vstack([v_cr, self.on_jaw(v_md, rot, t)]))
+        self.__dict__["_bone_jaw"] = (np.array(rot), np.array(t))
         return fast(pts)
 
     def _inside(self, pts, rot, t):
@@ -211,8 +212,9 @@ class ContactMixin:
                 pinned[corners[age[corners] > UNFOLD_RINGS]] = False
             keep = UNFOLD_GIVE ** max(stuck - UNFOLD_RINGS, 0.0)
             before = x.copy()
+            rows = self.adjacency[corners]         # the corners' rows: each the whole product's row, to the bit
             for _ in range(UNFOLD_SMOOTH):
-                x[corners] = (self.adjacency @ x)[corners]
+                x[corners] = rows @ x
             if pinned is not None:
                 x[pinned] = before[pinned]
             left = len(self.flipped(x))
@@ -221,9 +223,9 @@ class ContactMixin:
             fewer = zone is not None and left < len(bad) and zone[corners].all()
             if left and not fewer:                 # not unfolded in place: relax the patch's displacement
                 x = before.copy()
+                rows = self.adjacency[patch]
                 for _ in range(10):
-                    u = x - rest
-                    x[patch] = rest[patch] + keep * (self.adjacency @ u)[patch]
+                    x[patch] = rest[patch] + keep * (rows @ (x - rest))
                     if pinned is not None:
                         x[pinned] = before[pinned]
             else:

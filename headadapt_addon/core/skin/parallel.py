@@ -1,0 +1,127 @@
+"""Many keys' equilibria on two cores. A key's skin depends on its recipe alone (the same skin to the
+bit in any order, in a model built anew), and the bake was a one-core loop: a helper process (this
+Python, sys.executable) builds the same SkinModel from the template's folder and the anatomy and
+takes keys from the same queue as this process. Where no helper can start (one core, an executable
+that is not a Python, a template not loaded from a folder, too few keys) or it fails on the way,
+this process bakes what is left: the keys are the same either way."""
+
+from __future__ import annotations
+
+import os
+import pathlib
+import pickle
+import subprocess
+import sys
+import threading
+
+MIN_KEYS = 12           # fewer keys are baked here alone: the helper's start (Python, numpy, scipy and
+                        # the model's build: about 0.5 s) would cost more than it saves
+HELPER_GRACE = 30.0     # s the helper may still take over its last key once this process is done
+
+# the helper: the add-on's folder's parent on the path, the add-on imported by its folder's name
+# (Blender names an extension's package bl_ext.<repository>.<id>, which a plain Python cannot import)
+_CHILD = ("import importlib, sys; sys.path.insert(0, sys.argv[1]); "
+          "importlib.import_module(sys.argv[2] + '.core.skin.parallel').serve(sys.stdin.buffer, sys.stdout.buffer)")
+
+
+def serve(inp, out):
+    """The helper's side: (template folder, anatomy or None, recipes) read from `inp`, then key indices
+    until None; for each, (index, skin (n,3)) written to `out`."""
+    from ..template import load_template
+    from .build import build
+
+    directory, anatomy, recipes = pickle.load(inp)
+    model = build(load_template(directory), anatomy)
+    while (i := pickle.load(inp)) is not None:
+        pickle.dump((i, model.equilibrium(recipes[i])), out, protocol=pickle.HIGHEST_PROTOCOL)
+        out.flush()
+
+
+def start(directory, recipes, anatomy=None):
+    """The helper process for these recipes, begun (it builds its model while this process builds its
+    own), or None where none can start: `directory` the template's folder (Template.directory; None:
+    none starts), `anatomy` the model's (None: the template's own); fewer than MIN_KEYS recipes, one
+    core, an executable that is not a Python, or HEADADAPT_BAKE_HELPER=0 in the environment (the
+    batch's folder mode, whose scans side by side fill the cores): none."""
+    exe = pathlib.Path(sys.executable or "").name.lower()
+    if (directory is None or len(recipes) < MIN_KEYS or (os.cpu_count() or 1) < 2 or not exe.startswith("python")
+            or os.environ.get("HEADADAPT_BAKE_HELPER") == "0"):
+        return None
+    addon = pathlib.Path(__file__).resolve().parents[2]
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(p for p in sys.path if p)}
+    try:
+        proc = subprocess.Popen([sys.executable, "-c", _CHILD, str(addon.parent), addon.name], stdin=subprocess.PIPE,
+                                stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, env=env)
+    except OSError:
+        return None
+    try:
+        pickle.dump((str(directory), anatomy, recipes), proc.stdin, protocol=pickle.HIGHEST_PROTOCOL)
+        proc.stdin.flush()
+    except (OSError, pickle.PicklingError):
+        stop(proc)
+        return None
+    return proc
+
+
+def equilibria(model, recipes, proc=None, progress=None):
+    """([model.equilibrium(r) for r in recipes], how many of them the helper `proc` made (start's, for
+    the same recipes; None: this process makes them all)). progress(fraction done, recipe index) after
+    each key this process makes; an exception it raises (a cancel) stops the helper too."""
+    out = [None] * len(recipes)
+    queue, lock = list(range(len(recipes)))[::-1], threading.Lock()
+
+    def take():
+        with lock:
+            return queue.pop() if queue else None
+
+    helped = [0]
+    feeder = threading.Thread(target=_feed, args=(proc, take, out, helped), daemon=True) if proc else None
+    try:
+        if feeder:
+            feeder.start()
+        while (i := take()) is not None:
+            out[i] = model.equilibrium(recipes[i])
+            if progress:
+                progress(sum(x is not None for x in out) / len(out), i)
+        if feeder:
+            feeder.join(HELPER_GRACE)
+    finally:
+        if proc:
+            stop(proc)
+    if feeder:
+        feeder.join()
+    for i, skin in enumerate(out):              # what the helper took but did not give back
+        if skin is None:
+            out[i] = model.equilibrium(recipes[i])
+    return out, helped[0]
+
+
+def _feed(proc, take, out, helped):
+    """The helper's loop (on a thread): a key from the queue to the helper, its skin back (counted in
+    helped[0]), until the queue is empty or the helper fails (its key is then left to this process)."""
+    try:
+        while (i := take()) is not None:
+            pickle.dump(i, proc.stdin)
+            proc.stdin.flush()
+            j, skin = pickle.load(proc.stdout)
+            out[j] = skin
+            helped[0] += 1
+        pickle.dump(None, proc.stdin)
+        proc.stdin.flush()
+    except (OSError, EOFError, pickle.UnpicklingError, ValueError):
+        return
+
+
+def stop(proc):
+    """End the helper (done, failed or cancelled) and reap it."""
+    if proc.poll() is None:
+        try:
+            proc.wait(0.5)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+    for pipe in (proc.stdin, proc.stdout):
+        try:
+            pipe.close()
+        except OSError:
+            pass

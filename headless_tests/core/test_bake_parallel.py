@@ -1,0 +1,80 @@
+"""The bake on two cores (core/skin/parallel.py): a helper process bakes keys from the same queue; the
+keys are one core's to the bit, and a helper that fails or a cancel loses nothing and leaves no process."""
+import subprocess
+
+import numpy as np
+import pytest
+
+from headadapt_addon.core.skin import bake, drive, parallel
+from headadapt_addon.core.skin.build import build
+from headadapt_addon.core.template import load_template
+
+
+@pytest.fixture(scope="module")
+def tpl():
+    return load_template()
+
+
+@pytest.fixture(scope="module")
+def model_and_recipes(tpl):
+    recipes = [r for _, kind, r in drive.shape_key_recipes() if kind in ("expression", "viseme")]
+    assert len(recipes) >= parallel.MIN_KEYS
+    model = build(tpl)
+    return model, recipes, [model.equilibrium(r) for r in recipes]
+
+
+def test_keys_baked_on_two_cores_are_one_core_s_to_the_bit(tpl):
+    kinds = ("expression", "viseme")
+    two, timing = bake.bake(tpl, kinds=kinds)
+    one, alone = bake.bake(tpl, kinds=kinds, helper=False)
+    assert timing["helper_keys"] > 0 and alone["helper_keys"] == 0     # the helper did bake some
+    assert [k.name for k in two] == [k.name for k in one] and len(one) >= parallel.MIN_KEYS
+    for a, b in zip(two, one):
+        assert a.moved.keys() == b.moved.keys() and a.fap_units == b.fap_units
+        for part in a.moved:
+            np.testing.assert_array_equal(a.moved[part], b.moved[part])
+
+
+@pytest.mark.parametrize("child", ["import sys; sys.exit(3)",                        # dies at once
+                                   "import sys; sys.stdin.buffer.read(100); print('junk')"])   # answers junk
+def test_a_helper_that_fails_leaves_its_keys_to_this_process(tpl, model_and_recipes, monkeypatch, child):
+    model, recipes, alone = model_and_recipes
+    monkeypatch.setattr(parallel, "_CHILD", child)
+    skins, helped = parallel.equilibria(model, recipes, parallel.start(tpl.directory, recipes))
+    assert helped == 0
+    for a, b in zip(skins, alone):
+        np.testing.assert_array_equal(a, b)
+
+
+def test_a_cancel_stops_the_helper(tpl, model_and_recipes, monkeypatch):
+    model, recipes, _ = model_and_recipes
+    started = []
+    popen = subprocess.Popen
+
+    def record(*args, **kwargs):
+        started.append(popen(*args, **kwargs))
+        return started[-1]
+
+    monkeypatch.setattr(parallel.subprocess, "Popen", record)
+
+    def cancel(fraction, index):
+        raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        parallel.equilibria(model, recipes, parallel.start(tpl.directory, recipes), progress=cancel)
+    assert len(started) == 1 and started[0].poll() is not None      # ended and reaped
+
+
+def test_no_helper_for_a_template_not_loaded_from_a_folder_few_keys_or_the_folder_mode(tpl, model_and_recipes,
+                                                                                      monkeypatch):
+    model, recipes, alone = model_and_recipes
+    monkeypatch.setattr(parallel.subprocess, "Popen", None)          # starting one would fail the test
+    for directory, some in ((None, recipes), (tpl.directory, recipes[:parallel.MIN_KEYS - 1])):
+        assert parallel.start(directory, some) is None
+        skins, helped = parallel.equilibria(model, some, None)
+        assert helped == 0 and all(np.array_equal(a, b) for a, b in zip(skins, alone))
+    # the batch's folder mode runs a scan per core, and tells its scans' processes so
+    from headadapt_addon.batch import SCAN_PROCESS_THREADS
+    for name, value in SCAN_PROCESS_THREADS.items():
+        monkeypatch.setenv(name, value)
+    assert parallel.start(tpl.directory, recipes) is None
