@@ -159,6 +159,11 @@ class FoldCheck:
         n1 = face_cross(x, t)
         return np.flatnonzero((np.einsum("ij,ij->i", self.n0, n1) <= 0) & self.ok)
 
+    def among(self, x, idx):
+        """(len(idx),) bools: whether triangles idx are folded at x, each tested as __call__ tests it."""
+        n1 = face_cross(x, self.t[idx])
+        return (np.einsum("ij,ij->i", self.n0[idx], n1) <= 0) & self.ok[idx]
+
 
 def unfold(rest, x, t, rounds=40, steps=10, mean=None, folds=None):
     """(x', moved mask, folded left): x (n,3) with its displacement from rest relaxed around the

@@ -190,8 +190,9 @@ class ContactMixin:
         rest = self.rest[: self.n]
         age = np.zeros(self.n)
         changed = np.zeros(self.n, bool)          # skin the relaxation moved since its last full look
+        flipped = _FoldWatch(self.folds, self.tris, x)
         for _ in range(UNFOLD_STEPS):
-            bad = self.flipped(x)
+            bad = flipped(x)
             if not len(bad):
                 if not changed.any():
                     break
@@ -217,7 +218,7 @@ class ContactMixin:
                 x[corners] = rows @ x
             if pinned is not None:
                 x[pinned] = before[pinned]
-            left = len(self.flipped(x))
+            left = len(flipped(x))
             # by a closed lid a smoothing that leaves fewer folds is kept, the rest smoothed next step
             # (relaxing the displacement there pulls the lid back up; controls.LID_ZONE_RINGS)
             fewer = zone is not None and left < len(bad) and zone[corners].all()
@@ -235,6 +236,24 @@ class ContactMixin:
             x = self._retract_from_bone(self._keep_out_of_bone(x, contact, moved), contact, moved)
             changed |= (x != before).any(axis=1)
         return x
+
+
+class _FoldWatch:
+    """The folded triangles (FoldCheck's answer, to the bit) of a skin that moves a few vertices at a
+    time: only the triangles at a vertex that moved since the last look are tested again."""
+
+    def __init__(self, folds, tris, x):
+        self.folds, self.tris, self.x = folds, tris, x.copy()
+        self.folded = np.zeros(len(tris), bool)
+        self.folded[folds(x)] = True
+
+    def __call__(self, x):
+        moved = (x != self.x).any(axis=1)
+        if moved.any():
+            at = np.flatnonzero(moved[self.tris].any(axis=1))
+            self.folded[at] = self.folds.among(x, at)
+            self.x[moved] = x[moved]
+        return np.flatnonzero(self.folded)
 
 
 @dataclasses.dataclass
