@@ -25,12 +25,15 @@ _CHILD = ("import importlib, sys; sys.path.insert(0, sys.argv[1]); "
 
 
 def serve(inp, out):
-    """The helper's side: (template folder, anatomy or None, recipes) read from `inp`, then key indices
-    until None; for each, (index, skin (n,3)) written to `out`."""
+    """The helper's side: (Python's, numpy's and scipy's versions, template folder, anatomy or None,
+    recipes) read from `inp` (other versions than its own: it ends), then key indices until None; for
+    each, (index, skin (n,3)) written to `out`."""
     from ..template import load_template
     from .build import build
 
-    directory, anatomy, recipes = pickle.load(inp)
+    versions, directory, anatomy, recipes = pickle.load(inp)
+    if versions != _versions():             # another Python, numpy or scipy than this process's: other skins
+        return
     model = build(load_template(directory), anatomy)
     while (i := pickle.load(inp)) is not None:
         pickle.dump((i, model.equilibrium(recipes[i])), out, protocol=pickle.HIGHEST_PROTOCOL)
@@ -55,7 +58,7 @@ def start(directory, recipes, anatomy=None):
     except OSError:
         return None
     try:
-        pickle.dump((str(directory), anatomy, recipes), proc.stdin, protocol=pickle.HIGHEST_PROTOCOL)
+        pickle.dump((_versions(), str(directory), anatomy, recipes), proc.stdin, protocol=pickle.HIGHEST_PROTOCOL)
         proc.stdin.flush()
     except (OSError, pickle.PicklingError):
         stop(proc)
@@ -94,6 +97,17 @@ def equilibria(model, recipes, proc=None, progress=None):
         if skin is None:
             out[i] = model.equilibrium(recipes[i])
     return out, helped[0]
+
+
+def _versions():
+    """This Python's and numpy's and scipy's versions: the helper bakes only where they are this
+    process's, so that its skins are this process's (a Blender may name another Python as
+    sys.executable: Debian's 3.4 found a pyenv 3.11.7 on the PATH for its own 3.11.2)."""
+    import platform
+
+    import numpy
+    import scipy
+    return tuple(sys.version_info[:3]), platform.python_implementation(), numpy.__version__, scipy.__version__
 
 
 def _feed(proc, take, out, helped):
