@@ -185,6 +185,20 @@ def test_a_moving_mesh_refits_its_grid(tpl):
         fw.refit(v0[:-1])
 
 
+def test_a_triangle_collapsed_to_a_point_sends_no_point_to_the_brute_force():
+    """A triangle whose corners coincide (the transfer presses some bone triangles so) has no area;
+    the points round it are counted by the crossings, not summed by brute force, and right."""
+    v, t = sphere(200)
+    spot = v[t[0]].mean(axis=0) * 0.9                                       # just inside the surface
+    v2 = np.vstack([v, spot, spot, spot])
+    t2 = np.vstack([t, [len(v), len(v) + 1, len(v) + 2]])
+    rng = np.random.default_rng(8)
+    points = spot + rng.normal(0, 0.01, (300, 3))                            # within the grid's slack
+    fw = FastWinding(v2, t2, slack=0.05)
+    assert not fw.crossings(points)[1].any()
+    np.testing.assert_allclose(fw(points), winding_numbers(points, v2, t2), atol=ATOL)
+
+
 def test_empty_and_degenerate_inputs():
     v, t = sphere(50)
     fw = FastWinding(v, t)
