@@ -1,6 +1,7 @@
 """The bake on two cores (core/skin/parallel.py): a helper process bakes keys from the same queue; the
 keys are one core's to the bit, and a helper that fails or a cancel loses nothing and leaves no process."""
 import subprocess
+import time
 
 import numpy as np
 import pytest
@@ -36,12 +37,16 @@ def test_keys_baked_on_two_cores_are_one_core_s_to_the_bit(tpl):
 
 
 @pytest.mark.parametrize("child", ["import sys; sys.exit(3)",                        # dies at once
-                                   "import sys; sys.stdin.buffer.read(100); print('junk')"])   # answers junk
+                                   "import sys; sys.stdin.buffer.read(100); print('junk')",    # answers junk
+                                   "import sys, time; sys.stdin.buffer.read(100); time.sleep(600)"])   # hangs
 def test_a_helper_that_fails_leaves_its_keys_to_this_process(tpl, model_and_recipes, monkeypatch, child):
     model, recipes, alone = model_and_recipes
     monkeypatch.setattr(parallel, "_CHILD", child)
-    skins, helped = parallel.equilibria(model, recipes, parallel.start(tpl.directory, recipes))
-    assert helped == 0
+    proc = parallel.start(tpl.directory, recipes)
+    t0 = time.monotonic()
+    skins, helped = parallel.equilibria(model, recipes, proc)
+    assert helped == 0 and proc.poll() is not None
+    assert time.monotonic() - t0 < 60          # a hung helper is not waited for (it sleeps 600 s)
     for a, b in zip(skins, alone):
         np.testing.assert_array_equal(a, b)
 

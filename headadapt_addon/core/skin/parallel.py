@@ -13,10 +13,12 @@ import pickle
 import subprocess
 import sys
 import threading
+import time
 
 MIN_KEYS = 12           # fewer keys are baked here alone: the helper's start (Python, numpy, scipy and
                         # the model's build: about 0.5 s) would cost more than it saves
-HELPER_GRACE = 30.0     # s the helper may still take over its last key once this process is done
+LAST_KEY_WAIT = 2.0     # once this process is done, the helper's last key is waited for this many times
+                        # as long as a key took here (at least 1 s), then made here (a hung helper costs no more)
 
 # the helper: the add-on's folder's parent on the path, the add-on imported by its folder's name
 # (Blender names an extension's package bl_ext.<repository>.<id>, which a plain Python cannot import)
@@ -77,17 +79,18 @@ def equilibria(model, recipes, proc=None, progress=None):
         with lock:
             return queue.pop() if queue else None
 
-    helped = [0]
+    helped, made, t0 = [0], 0, time.perf_counter()
     feeder = threading.Thread(target=_feed, args=(proc, take, out, helped), daemon=True) if proc else None
     try:
         if feeder:
             feeder.start()
         while (i := take()) is not None:
             out[i] = model.equilibrium(recipes[i])
+            made += 1
             if progress:
                 progress(sum(x is not None for x in out) / len(out), i)
         if feeder:
-            feeder.join(HELPER_GRACE)
+            feeder.join(max(1.0, LAST_KEY_WAIT * (time.perf_counter() - t0) / max(made, 1)))
     finally:
         if proc:
             stop(proc)
