@@ -25,7 +25,8 @@ def model_and_recipes(tpl):
 
 
 def test_keys_baked_on_two_cores_are_one_core_s_to_the_bit(tpl):
-    kinds = ("expression", "viseme")
+    # the 76 MPEG-4 keys (about 2 s here): with fewer the helper, starting, may find the queue empty
+    kinds = ("expression", "viseme", "fap")
     two, timing = bake.bake(tpl, kinds=kinds)
     one, alone = bake.bake(tpl, kinds=kinds, helper=False)
     assert timing["helper_keys"] > 0 and alone["helper_keys"] == 0     # the helper did bake some
