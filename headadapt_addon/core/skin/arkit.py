@@ -122,22 +122,19 @@ def rigid_moves(unit, parts):
     return {}
 
 
-def bake_units(tpl, model, parts, followers, progress=None, skins=None):
+def bake_units(tpl, model, parts, followers, skins):
     """[(unit, {part: (k,3) positions})] of the 52 units at 1 on a built SkinModel and its parts: the
-    skin at the unit's equilibrium (its rest shape for a neutral key; `skins` {unit: skin} where it is
-    made already), the jaw's followers (part names) where the jaw moves, the rigid parts of rigid_moves."""
+    skin at the unit's equilibrium (`skins` {unit: skin}, made for every unit with a recipe; a neutral
+    key keeps the rest shape), the jaw's followers (part names) where the jaw moves, the rigid parts
+    of rigid_moves."""
     out = []
-    skins = skins or {}
-    for i, unit in enumerate(UNITS):
+    for unit in UNITS:
         controls = recipe(tpl, unit)
-        skin = skins[unit] if unit in skins else model.equilibrium(controls) if controls else None
-        moved = {"skin": skin if skin is not None else np.array(parts["skin"], dtype=float)}
+        moved = {"skin": skins[unit] if controls else np.array(parts["skin"], dtype=float)}
         if controls.keys() & {"jaw_open", "jaw_thrust", "jaw_shift"}:
             rot, t = model.mandible_transform(controls)
             for part in followers:
                 moved[part] = model.on_jaw(parts[part], rot, t)
         moved.update(rigid_moves(unit, parts))
         out.append((unit, moved))
-        if progress:
-            progress((i + 1) / len(UNITS), unit)
     return out

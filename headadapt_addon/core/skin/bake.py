@@ -108,7 +108,7 @@ def bake(tpl, anatomy=None, kinds=("expression", "viseme", "fap", "arkit"), prog
                 units = _fap_units(mpeg4.FAP_BY_NAME[name], tpl, parts, moved, fapus)
             keys.append(BakedKey(name, kind, moved, units))
     if arkit_units:
-        for name, moved in arkit.bake_units(tpl, model, parts, JAW_FOLLOWERS, skins=unit_skins):
+        for name, moved in arkit.bake_units(tpl, model, parts, JAW_FOLLOWERS, unit_skins):
             keys.append(BakedKey(name, "arkit", moved))
     if progress:
         progress(1.0, keys[-1].name if keys else "")
