@@ -1,22 +1,27 @@
 """Benchmark: anatomy transfer, old (brute-force inside tests) against new, in one run. Prints figures.
 
-    ./ha bench transfer [--reps 5] [--real]
+    ./ha bench transfer [--reps 3] [--seeds 100-103] [--real]
 
-The head: the bundled sample scan adapted as `./ha demo` adapts it (--real adds the CT and the
-two busts of ../shared/scans, or $HEADADAPT_SCANS). On each adapted head anatomy.transfer runs
-`reps` times each way, alternating, and the fastest run of each counts (the machine is shared):
+The heads: the bundled sample scan adapted as `./ha demo` adapts it (its clicks and markers) and
+from the 8 clicks the panel asks for, the scan-like test heads of --seeds (tools/testheads, style
+"scan", their 8 clicks); --real adds the CT and the two busts of ../shared/scans, or
+$HEADADAPT_SCANS. On each adapted head anatomy.transfer runs `reps` times each way, alternating,
+and the fastest run of each counts (the machine is shared):
 
   old   the transfer as it was before core/winding.py: every inside test the brute-force sum
         over all triangles (inside.winding_numbers), the skin near the bone by MeshQuery's
         closest point for every visible skin vertex, the template's skin anchors of the bone
         found anew (the same code with those three put back)
   new   anatomy.transfer as it is: FastWinding (exact, built once per transfer), _within, the
-        anchors found once per process; "cold" is the first transfer of a process, which finds them
+        anchors found once per process, the skull's cap terms kept between its inside tests
+        (FastWinding(remember=True)); "cold" is the first transfer of a process, which finds the
+        anchors; "forget" is new with every inside test summing the skull's caps afresh
 
-Printed per head: seconds old and new (wall clock; and the process's CPU seconds, less disturbed
-by other work on a shared machine), their ratio, and the largest difference of any vertex of any
-part between the two results (0: bit-identical). Then where the time goes, per stage of the
-transfer (exclusive seconds of the fastest run) and in all inside tests together.
+Printed per head, slowest first: seconds old and new (wall clock; and the process's CPU seconds,
+less disturbed by other work on a shared machine), their ratio, cold and forget, and the largest
+difference of any vertex of any part between old and new, and between forget and new (0:
+bit-identical). Then where the time goes, per stage of the transfer (exclusive seconds of the
+fastest run) and in all inside tests together.
 """
 import argparse
 import contextlib
@@ -30,7 +35,9 @@ import numpy as np
 ROOT = pathlib.Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
 
-from headadapt_addon.core import adapt, anatomy, meshio
+from bench_adapt import parse_seeds
+
+from headadapt_addon.core import adapt, anatomy, meshio, mpeg4
 from headadapt_addon.core.mesh import geometry, winding
 from headadapt_addon.core.mesh.inside import winding_numbers
 from headadapt_addon.core.mesh.spatial import MeshQuery
@@ -49,7 +56,7 @@ STAGES = (  # (label, module, function name): timed exclusive of each other
 class BruteWinding:
     """The old inside test behind FastWinding's interface: every triangle summed at every point."""
 
-    def __init__(self, verts, tris, slack=None):
+    def __init__(self, verts, tris, slack=None, remember=None):
         self.verts, self.tris = np.asarray(verts, dtype=np.float64), tris
 
     def refit(self, verts):
@@ -98,7 +105,7 @@ class Clock:
         return timed
 
 
-def timed_transfer(tpl, result, old, cold=False):
+def timed_transfer(tpl, result, old, cold=False, forget=False):
     """(Anatomy, total seconds, {stage: exclusive seconds}, seconds in inside tests, CPU seconds)."""
     clock = Clock()
     inside = {"s": 0.0}
@@ -107,6 +114,8 @@ def timed_transfer(tpl, result, old, cold=False):
     class Counted(base):
         def __init__(self, *a, **k):
             t0 = time.perf_counter()
+            if forget:
+                k["remember"] = False
             super().__init__(*a, **k)
             inside["s"] += time.perf_counter() - t0
 
@@ -131,13 +140,20 @@ def timed_transfer(tpl, result, old, cold=False):
     return ana, total, clock.seconds, inside["s"], cpu
 
 
-def heads(tpl, real):
-    """[(name, AdaptResult)]: the sample scan as ./ha demo adapts it, and with --real the CT and busts."""
+def heads(tpl, seeds, real):
+    """[(name, AdaptResult)] of the heads the docstring names."""
+    from tools import testheads
+
     sample = ROOT / "assets" / "sample_scan"
     verts, tris = meshio.read_mesh(sample / "scan.ply")[:2]
     points, meta = meshio.read_landmark_file(sample / "landmarks.json")
     markers = meta.get("markers")
-    out = [("sample scan", adapt.adapt(tpl, verts, tris, points, adapt.AdaptOptions(max_levels=4), markers=markers))]
+    out = [("sample, demo", adapt.adapt(tpl, verts, tris, points, adapt.AdaptOptions(max_levels=4), markers=markers)),
+           ("sample, 8 clicks", adapt.adapt(tpl, verts, tris, {k: points[k] for k in mpeg4.CLICKS_8}))]
+    for seed in seeds:
+        h = testheads.make_head(seed, style="scan")
+        clicks = {k: h.fdp_clicks[k] for k in mpeg4.CLICKS_8 if k in h.fdp_clicks}
+        out.append((f"test head {seed}", adapt.adapt(tpl, h.scan_verts, h.scan_tris, clicks)))
     if real:
         scans = pathlib.Path(os.environ.get("HEADADAPT_SCANS", ROOT.parent / "shared" / "scans"))
         if not scans.is_dir():
@@ -156,38 +172,44 @@ def heads(tpl, real):
 
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--reps", type=int, default=5, help="runs each way per head (the fastest counts)")
+    parser.add_argument("--reps", type=int, default=3, help="runs each way per head (the fastest counts)")
+    parser.add_argument("--seeds", default="100-103", help="scan-like test heads (tools/testheads), '' for none")
     parser.add_argument("--real", action="store_true", help="also the CT and the busts in ../shared/scans")
     args = parser.parse_args(argv)
     tpl = load_template()
     rows = []
-    for name, result in heads(tpl, args.real):
+    kinds = ("old", "cold", "forget", "new")
+    for name, result in heads(tpl, parse_seeds(args.seeds) if args.seeds else [], args.real):
         best = {}
         for _ in range(args.reps):
-            for key in ("old", "cold", "new"):
-                run = timed_transfer(tpl, result, key == "old", key == "cold")
+            for key in kinds:
+                run = timed_transfer(tpl, result, key == "old", key == "cold", key == "forget")
                 if key not in best or run[1] < best[key][1]:
                     best[key] = run
-        diff = {p: float(np.abs(best["old"][0].parts[p] - best["new"][0].parts[p]).max()) for p in best["old"][0].parts}
-        rows.append((name, best, diff))
-    print(f"anatomy transfer, fastest of {args.reps} runs each way in one process "
+
+        def largest(a, b):
+            diff = {p: float(np.abs(a.parts[p] - b.parts[p]).max()) for p in a.parts}
+            worst = max(diff, key=diff.get)
+            return f"{diff[worst]:.1e} m" + ("" if diff[worst] == 0 else f" ({worst})")
+
+        rows.append((name, best, largest(best["old"][0], best["new"][0]), largest(best["forget"][0], best["new"][0])))
+    rows.sort(key=lambda row: -row[1]["new"][1])
+    print(f"anatomy transfer, fastest of {args.reps} runs each way in one process, slowest first "
           "(old: brute-force inside tests, as before core/winding.py)")
-    print(f"{'head':14s} {'old s':>7s} {'new s':>7s} {'ratio':>7s} {'cold s':>7s} {'ratio':>7s}  "
-          f"{'CPU s old':>9s} {'new':>6s}  largest vertex difference between old and new")
-    for name, best, diff in rows:
-        worst = max(diff, key=diff.get)
-        old, new, cold = (best[k][1] for k in ("old", "new", "cold"))
-        print(f"{name:14s} {old:7.3f} {new:7.3f} {old / new:6.1f}x {cold:7.3f} {old / cold:6.1f}x  "
-              f"{best['old'][4]:9.3f} {best['new'][4]:6.3f}  "
-              f"{diff[worst]:.1e} m ({worst}; {'all parts equal' if diff[worst] == 0 else 'per part: ' + str(diff)})")
-    for name, best, _ in rows:
+    print(f"{'head':16s} {'old s':>7s} {'new s':>7s} {'ratio':>7s} {'cold s':>7s} {'forget s':>8s}  "
+          f"{'CPU s old':>9s} {'new':>6s}  largest vertex difference: old-new, forget-new")
+    for name, best, d_old, d_forget in rows:
+        old, new, cold, forget = (best[k][1] for k in ("old", "new", "cold", "forget"))
+        print(f"{name:16s} {old:7.3f} {new:7.3f} {old / new:6.1f}x {cold:7.3f} {forget:8.3f}  "
+              f"{best['old'][4]:9.3f} {best['new'][4]:6.3f}  {d_old}, {d_forget}")
+    for name, best, _, _ in rows:
         print()
         print(f"where the time goes, {name} (exclusive seconds of the fastest run):")
-        print(f"  {'stage':36s} {'old':>7s} {'new':>7s} {'cold':>7s}")
+        print(f"  {'stage':36s} " + " ".join(f"{k:>7s}" for k in kinds))
         for label, _, _ in STAGES:
-            print(f"  {label:36s} " + " ".join(f"{best[k][2].get(label, 0.0):7.3f}" for k in ("old", "new", "cold")))
-        print(f"  {'total':36s} " + " ".join(f"{best[k][1]:7.3f}" for k in ("old", "new", "cold")))
-        print(f"  {'of it in inside tests (all stages)':36s} " + " ".join(f"{best[k][3]:7.3f}" for k in ("old", "new", "cold")))
+            print(f"  {label:36s} " + " ".join(f"{best[k][2].get(label, 0.0):7.3f}" for k in kinds))
+        print(f"  {'total':36s} " + " ".join(f"{best[k][1]:7.3f}" for k in kinds))
+        print(f"  {'of it in inside tests (all stages)':36s} " + " ".join(f"{best[k][3]:7.3f}" for k in kinds))
 
 
 if __name__ == "__main__":

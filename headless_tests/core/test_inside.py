@@ -185,6 +185,49 @@ def test_a_moving_mesh_refits_its_grid(tpl):
         fw.refit(v0[:-1])
 
 
+def test_kept_cap_terms_give_the_fresh_sums_to_the_bit(tpl, monkeypatch):
+    """FastWinding(remember=True), as the transfer asks the skull: the same points asked again while
+    the bone moves in places sum the kept terms of the caps that did not move. Its values are those
+    of a FastWinding that sums every cap afresh, to the bit, through moved caps, moved points, a
+    query of another size in between and a point that is not a number; and it computes only what
+    moved."""
+    from headadapt_addon.core.mesh import winding
+
+    v0 = np.vstack([tpl.parts["cranium"].verts, tpl.parts["mandible"].verts])
+    t = tpl.skull_tris
+    rng = np.random.default_rng(11)
+    points = tpl.skin.verts[::2] + rng.normal(0, 0.001, tpl.skin.verts[::2].shape)
+    kept, fresh = FastWinding(v0, t, slack=0.001, remember=True), FastWinding(v0, t, slack=0.001)
+    rims = np.unique(kept.cap)
+    terms = []
+    real = winding.solid_angles
+    monkeypatch.setattr(winding, "solid_angles", lambda p, c, **k: terms.append(len(p) * len(c)) or real(p, c, **k))
+    v, p = v0.copy(), points.copy()
+    steps = []
+    for k in range(6):
+        if k == 1:          # a few rim vertices (cap corners) and other bone vertices move
+            v[rng.choice(rims, 12, replace=False)] += 0.002
+            v[rng.choice(len(v), 100, replace=False)] -= 0.001
+        if k == 2:          # some points move
+            p[rng.choice(len(p), 40, replace=False)] += 0.003
+        if k == 3:          # another query in between, then the big one with its points unmoved
+            small = p[:50] + 0.0005
+            assert np.array_equal(kept.refit(v)(small), fresh.refit(v)(small))
+        if k == 4:
+            p[7] = np.nan
+        if k == 5:          # everything moves
+            v += 0.001
+        terms.clear()
+        got, want = kept.refit(v)(p), fresh.refit(v)(p)
+        assert np.array_equal(got, want, equal_nan=True), k
+        steps.append(sum(terms))
+        ok = np.isfinite(p).all(axis=1)
+        np.testing.assert_allclose(got[ok], winding_numbers(p[ok], v, t), atol=ATOL)
+    full = len(p) * len(kept.cap)
+    assert steps[0] == full and steps[5] == full
+    assert 0 < steps[1] < 0.2 * full and 0 < steps[2] < 0.05 * full and steps[3] == 0, (steps, full)
+
+
 def test_a_triangle_collapsed_to_a_point_sends_no_point_to_the_brute_force():
     """A triangle whose corners coincide (the transfer presses some bone triangles so) has no area;
     the points round it are counted by the crossings, not summed by brute force, and right."""
@@ -240,7 +283,7 @@ def test_within_selects_what_the_closest_point_selects(tpl):
 class BruteWinding:
     """The old inside test behind FastWinding's interface: every triangle summed at every point."""
 
-    def __init__(self, verts, tris, slack=None):
+    def __init__(self, verts, tris, slack=None, remember=None):
         self.verts, self.tris = verts, tris
 
     def refit(self, verts):

@@ -45,8 +45,10 @@ def transfer(tpl: Template, result: AdaptResult) -> Anatomy:
         lifted = skin_inside(relaxed) < 0.5    # out of the skin again
         relaxed[lifted] = pressed[name][lifted]
         parts[name] = relaxed
-    # the skull's: clear_visible_skin moves it a step (1 mm) at a time; its grid keeps for a step
-    bone_inside = winding.FastWinding(np.vstack([parts["cranium"], parts["mandible"]]), tpl.skull_tris, slack=0.001)
+    # the skull's: clear_visible_skin moves it a step (1 mm) at a time; its grid keeps for a step, and
+    # the terms of its 536 caps at the visible skin for the next ask (most caps have not moved)
+    bone_inside = winding.FastWinding(np.vstack([parts["cranium"], parts["mandible"]]), tpl.skull_tris, slack=0.001,
+                                      remember=True)
     parts["cranium"], parts["mandible"] = clear_visible_skin(tpl, parts["skin"], parts["cranium"], parts["mandible"],
                                                              skin_inside=skin_inside, bone_inside=bone_inside)
     parts["cranium"], parts["mandible"] = unrelax_under_skin(tpl, parts, pressed, skin_inside=skin_inside,

@@ -11,8 +11,27 @@ def winding_numbers(points, verts, tris, chunk=32):
     cache: about ten times faster than stacked (k,t,3) arrays)."""
     points = np.ascontiguousarray(points, dtype=np.float64)
     corners = np.asarray(verts, dtype=np.float64)[np.asarray(tris)]           # (t,3,3)
-    a, b, c = (np.ascontiguousarray(corners[:, i].T) for i in range(3))     # (3,t) each
     out = np.empty(len(points))
+    for start, angles in _angle_chunks(points, corners, chunk):
+        out[start:start + len(angles)] = angles.sum(axis=1) / (2 * np.pi)
+    return out
+
+
+def solid_angles(points, corners, chunk=32):
+    """(k,t): the arctangent of each point (k,3) and triangle (corners
+    (t,3,3)) that winding_numbers sums: each row's sum over 2 pi is the point's winding number, to
+    the bit (the same arithmetic, row by row)."""
+    points = np.ascontiguousarray(points, dtype=np.float64)
+    out = np.empty((len(points), len(corners)))
+    for start, angles in _angle_chunks(points, np.asarray(corners, dtype=np.float64), chunk):
+        out[start:start + len(angles)] = angles
+    return out
+
+
+def _angle_chunks(points, corners, chunk):
+    """(start, (m,t) arctangents) for each chunk of `chunk` points: Van Oosterom and Strackee's
+    solid angle of each triangle at each point, over 2 (the arctangent of the half angle)."""
+    a, b, c = (np.ascontiguousarray(corners[:, i].T) for i in range(3))     # (3,t) each
     for start in range(0, len(points), chunk):
         p = points[start:start + chunk, :, None]                              # (m,3,1)
         (ax, ay, az), (bx, by, bz), (cx, cy, cz) = (
@@ -21,5 +40,4 @@ def winding_numbers(points, verts, tris, chunk=32):
         num = ax * (by * cz - bz * cy) + ay * (bz * cx - bx * cz) + az * (bx * cy - by * cx)
         den = (la * lb * lc + (ax * bx + ay * by + az * bz) * lc
                + (bx * cx + by * cy + bz * cz) * la + (cx * ax + cy * ay + cz * az) * lb)
-        out[start:start + chunk] = np.arctan2(num, den).sum(axis=1) / (2 * np.pi)
-    return out
+        yield start, np.arctan2(num, den)

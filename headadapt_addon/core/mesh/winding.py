@@ -33,9 +33,14 @@ at an error of 2e-3 (second order, beta 2), against 10-80x here without error.
 
 import numpy as np
 
-from .inside import winding_numbers
+from .inside import solid_angles, winding_numbers
 
 _EPS = np.finfo(np.float64).eps
+# FastWinding(remember=True) keeps each cap triangle's term at the points of its last few queries
+# (by their number): the next query with those points sums the kept terms again and computes only
+# the points that moved and the caps whose corners moved
+REMEMBER_SETS = 4                    # query sets kept, the largest (the transfer's visible skin) first
+REMEMBER_MOST = 4_000_000            # terms kept per set at most (32 MB); a larger query is summed afresh
 
 
 def _rotation():
@@ -123,9 +128,11 @@ class FastWinding:
     inside.winding_numbers up to rounding. Built once per mesh; refit(verts) for moved vertices
     (the same triangles: a deforming mesh keeps its caps, and its grid while no vertex has moved
     farther than `slack` since the grid was built; a larger slack means fewer rebuilds and more
-    triangles tried per point). Any unit."""
+    triangles tried per point). remember: keep the caps' terms at the last queries' points, for a
+    caller that asks again at the same points while the mesh moves in places (the anatomy transfer
+    asks at every visible skin vertex seven times). Any unit."""
 
-    def __init__(self, verts, tris, slack=0.0):
+    def __init__(self, verts, tris, slack=0.0, remember=False):
         self.tris = np.asarray(tris, dtype=np.int64).reshape(-1, 3)
         verts = np.asarray(verts, dtype=np.float64)
         self.n_verts = len(verts)
@@ -139,6 +146,8 @@ class FastWinding:
         self.parity = np.where(even, 1, -1).astype(np.int8)
         self.n_closed = len(closed)
         self.slack = slack
+        self.remember = remember
+        self._kept = {}                  # {number of points: (points, cap corners, (k, caps) terms)}
         self._grid_verts = None
         self.refit(verts)
 
@@ -276,8 +285,30 @@ class FastWinding:
         if not len(points):
             return np.zeros(0)
         W, unsure = self.crossings(points)
-        out = W - winding_numbers(points, self.verts, self.cap) if len(self.cap) else W.astype(np.float64)
+        out = W - self._caps(points) if len(self.cap) else W.astype(np.float64)
         redo = np.flatnonzero(unsure)
         if len(redo):
             out[redo] = winding_numbers(points[redo], self.verts, self.tris)
         return out
+
+    def _caps(self, points):
+        """The caps' winding numbers (k,) at points (k,3), as inside.winding_numbers sums them (to the
+        bit: the same terms, each row summed alike), from the kept terms where remembering."""
+        if not self.remember or len(points) * len(self.cap) > REMEMBER_MOST:
+            return winding_numbers(points, self.verts, self.cap)
+        corners = self.verts[self.cap]
+        kept = self._kept.pop(len(points), None)
+        if kept is None:
+            terms = solid_angles(points, corners)
+        else:
+            seen, was, terms = kept
+            moved = (points != seen).any(axis=1)
+            if moved.any():
+                terms[moved] = solid_angles(points[moved], corners)
+            cols, same = np.flatnonzero((corners != was).any(axis=(1, 2))), np.flatnonzero(~moved)
+            if len(cols) and len(same):
+                terms[np.ix_(same, cols)] = solid_angles(points[same], corners[cols], chunk=max(32, 16384 // len(cols)))
+        while len(self._kept) >= REMEMBER_SETS:          # the smallest set goes: the quickest to sum anew
+            self._kept.pop(min(self._kept))
+        self._kept[len(points)] = (points.copy(), corners, terms)
+        return terms.sum(axis=1) / (2 * np.pi)
