@@ -52,6 +52,21 @@ def test_a_helper_that_fails_leaves_its_keys_to_this_process(tpl, model_and_reci
         np.testing.assert_array_equal(a, b)
 
 
+def test_a_helper_slow_to_read_holds_nothing_back(tpl, model_and_recipes, monkeypatch):
+    # the helper reads its recipes and anatomy (megabytes) only once it has imported numpy and scipy:
+    # start() returns at once all the same (this process builds its model meanwhile), and a helper
+    # that never reads them costs no wait
+    model, recipes, alone = model_and_recipes
+    monkeypatch.setattr(parallel, "_CHILD", "import time; time.sleep(600)")
+    t0 = time.monotonic()
+    proc = parallel.start(tpl.directory, recipes, np.zeros(4_000_000))        # 32 MB: far over a pipe's 64 kB
+    assert time.monotonic() - t0 < 30
+    skins, helped = parallel.equilibria(model, recipes, proc)
+    assert helped == 0 and proc.poll() is not None and time.monotonic() - t0 < 60
+    for a, b in zip(skins, alone):
+        np.testing.assert_array_equal(a, b)
+
+
 def test_a_cancel_stops_the_helper(tpl, model_and_recipes, monkeypatch):
     model, recipes, _ = model_and_recipes
     started = []

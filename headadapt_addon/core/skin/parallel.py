@@ -60,12 +60,24 @@ def start(directory, recipes, anatomy=None):
     except OSError:
         return None
     try:
-        pickle.dump((_versions(), str(directory), anatomy, recipes), proc.stdin, protocol=pickle.HIGHEST_PROTOCOL)
-        proc.stdin.flush()
-    except (OSError, pickle.PicklingError):
+        payload = pickle.dumps((_versions(), str(directory), anatomy, recipes), protocol=pickle.HIGHEST_PROTOCOL)
+    except pickle.PicklingError:
         stop(proc)
         return None
+    # written on a thread: the helper reads it only once it has imported numpy and scipy (about 0.4 s),
+    # and the pipe holds 64 kB of the anatomy's megabytes, so a write here would hold this process's
+    # model build back until then
+    proc.sender = threading.Thread(target=_send, args=(proc, payload), daemon=True)
+    proc.sender.start()
     return proc
+
+
+def _send(proc, payload):
+    try:
+        proc.stdin.write(payload)
+        proc.stdin.flush()
+    except (OSError, ValueError):           # the helper died, or was stopped: the feeder finds out
+        pass
 
 
 def equilibria(model, recipes, proc=None, progress=None):
@@ -116,6 +128,7 @@ def _versions():
 def _feed(proc, take, out, helped):
     """The helper's loop (on a thread): a key from the queue to the helper, its skin back (counted in
     helped[0]), until the queue is empty or the helper fails (its key is then left to this process)."""
+    proc.sender.join()                          # the helper has its recipes before it is sent a key
     try:
         while (i := take()) is not None:
             pickle.dump(i, proc.stdin)
