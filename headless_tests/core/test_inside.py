@@ -13,9 +13,10 @@ import pytest
 from scipy.spatial import ConvexHull
 
 from headadapt_addon.core import anatomy
+from headadapt_addon.core.mesh.caps import border_edges, border_loops, cap_triangles
 from headadapt_addon.core.mesh.inside import winding_numbers
 from headadapt_addon.core.mesh.spatial import MeshQuery
-from headadapt_addon.core.mesh.winding import ROTATION, FastWinding, border_edges, border_loops, cap_triangles
+from headadapt_addon.core.mesh.winding import ROTATION, FastWinding
 
 ATOL = 1e-9          # values: the brute force's up to rounding (1e-13 seen); this is the test's margin
 

@@ -12,6 +12,7 @@ from scipy.spatial import cKDTree
 from ..mesh import geometry
 from ..mesh.winding import FastWinding
 from ..tol import TINY
+from .recall import closest_on_bone
 
 UNFOLD_STEPS = 80                     # most local relaxation steps against folded triangles
 UNFOLD_RINGS = 8                      # rings relaxed around a fold: one more per step it stays folded, up
@@ -34,20 +35,20 @@ class ContactMixin:
     """SkinModel's contact with the bone (its fields n, rest, bone, bone_dist, free, clearance,
     adjacency, on_mandible, tris and folds; the jaw from JawMixin)."""
 
-    def _bone_gap(self, pts, outward, rot, t, known):
+    def _bone_gap(self, pts, outward, rot, t, known, idx=None):
         """Signed gap (k,) of skin points (k,3) above the bone with the mandible at (rot, t), the
         unit direction (k,3) that leads out, (k,) bools at an opening (odd) and inside, and how far
         each point may move and keep its side (k,), signed like the gap, NaN where `known` gave the
-        side: metres. `known` (k,) is +1/-1 where the side is already known, 0 where not.
+        side: metres. `known` (k,) is +1/-1 where the side is already known, 0 where not; `idx` (k,)
+        the points' skin vertices, if they are (their closest points on the bone are then recall's).
 
         Inside is a winding number over 1/2 (it sees the bone's openings right); it is computed
         only where the nearest face leaves a doubt, or by a hole in the bone (there the winding
         number's 1/2 level spans the hole, off the bone). A point in front of its nearest face that
         is inside sits at an opening: its way out is `outward`, its gap counts as 0."""
-        (q_cr, n_cr, open_cr), (q_md, n_md, open_md), *_ = self.bone
-        c_cr, f_cr, d_cr = q_cr.closest_points(pts)
+        (_, n_cr, open_cr), (_, n_md, open_md), *_ = self.bone
         local = self._jaw_local(pts, rot, t)
-        c_md, f_md, d_md = q_md.closest_points(local)
+        (c_cr, f_cr, d_cr), (c_md, f_md, d_md) = closest_on_bone(self, pts, local, idx)
         use_md = d_md < d_cr
         dist = np.minimum(d_md, d_cr)
         closest = np.where(use_md[:, None], self.on_jaw(c_md, rot, t), c_cr)
@@ -98,7 +99,7 @@ class ContactMixin:
             if not len(near):
                 break
             gap, way_out, odd, _, keeps = self._bone_gap(x[near], contact.outward[near], rot, t,
-                                                         contact.known_side(x, near))
+                                                         contact.known_side(x, near), near)
             fresh = ~np.isnan(keeps)
             contact.sided_at[near[fresh]], contact.sided_keep[near[fresh]] = x[near[fresh]], keeps[fresh]
             contact.normal[near] = way_out
@@ -137,7 +138,7 @@ class ContactMixin:
         near = self._near_bone(x, contact, only)
         if not len(near):
             return x
-        inside = self._bone_gap(x[near], contact.outward[near], rot, t, contact.known_side(x, near))[3]
+        inside = self._bone_gap(x[near], contact.outward[near], rot, t, contact.known_side(x, near), near)[3]
         bad = near[inside]
         if not len(bad):
             return x
