@@ -21,7 +21,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ..tol import EXACT, TINY
-from .triangles import RAY_TOL, closest_choice, closest_on_segments, ray_choice
+from .triangles import RAY_TOL, closest_choice, closest_on_segments, finite, ray_choice
 
 
 def _spread_bits(x):
@@ -222,14 +222,14 @@ class TriangleBVH:
         v, w = np.where(m, 1.0, v), np.where(m, 0.0, w)
         m = (d1 <= 0) & (d2 <= 0)                                             # vertex a
         v, w = np.where(m, 0.0, v), np.where(m, 0.0, w)
-        v, w = np.nan_to_num(v), np.nan_to_num(w)                             # flat: redone below
+        v, w = finite(v), finite(w)                                           # flat: redone below
         rx, ry, rz = v * bx + w * cx, v * by + w * cy, v * bz + w * cz        # closest point - a
         dist = np.sqrt((px - rx) ** 2 + (py - ry) ** 2 + (pz - rz) ** 2)
         flat = np.flatnonzero(self.flat[slot])
         if len(flat):
-            a = np.c_[ax[flat], ay[flat], az[flat]]
-            b, c = a + np.c_[bx[flat], by[flat], bz[flat]], a + np.c_[cx[flat], cy[flat], cz[flat]]
-            pp = np.c_[p[0][owner[flat]], p[1][owner[flat]], p[2][owner[flat]]]
+            a, b, c, pp = (np.column_stack([x[flat] for x in xyz]) for xyz in ((ax, ay, az), (bx, by, bz), (cx, cy, cz),
+                                                                                (p[0][owner], p[1][owner], p[2][owner])))
+            b, c = a + b, a + c
             dist[flat] = np.linalg.norm(closest_on_segments(pp, a, b, c)[0] - pp, axis=1)
         return dist
 
@@ -287,8 +287,8 @@ class TriangleBVH:
         allq, slots = q2[near], s2[near]                                # owners in order
         dist = self.point_test(p, allq, slots)
         # every candidate within pad of its point's least distance, by point
-        starts = np.flatnonzero(np.r_[True, allq[1:] != allq[:-1]])
-        least = np.repeat(np.minimum.reduceat(dist, starts), np.diff(np.r_[starts, len(allq)]))
+        starts = np.flatnonzero(np.concatenate([[True], allq[1:] != allq[:-1]]))
+        least = np.repeat(np.minimum.reduceat(dist, starts), np.diff(np.append(starts, len(allq))))
         keep = dist <= least + self.pad
         who, q, face, d = closest_choice(points, allq[keep], self.face[slots[keep]], self.verts, self.tris)
         out_q[who], out_f[who], out_d[who] = q, face, d
