@@ -227,10 +227,9 @@ class TriangleBVH:
         dist = np.sqrt((px - rx) ** 2 + (py - ry) ** 2 + (pz - rz) ** 2)
         flat = np.flatnonzero(self.flat[slot])
         if len(flat):
-            a, b, c, pp = (np.column_stack([x[flat] for x in xyz]) for xyz in ((ax, ay, az), (bx, by, bz), (cx, cy, cz),
-                                                                                (p[0][owner], p[1][owner], p[2][owner])))
-            b, c = a + b, a + c
-            dist[flat] = np.linalg.norm(closest_on_segments(pp, a, b, c)[0] - pp, axis=1)
+            a, e1, e2 = (np.column_stack([x[flat] for x in xyz]) for xyz in ((ax, ay, az), (bx, by, bz), (cx, cy, cz)))
+            pp = np.column_stack([k[owner[flat]] for k in p])
+            dist[flat] = np.linalg.norm(closest_on_segments(pp, a, a + e1, a + e2)[0] - pp, axis=1)
         return dist
 
     def sphere_gap(self, p, owner, slot):

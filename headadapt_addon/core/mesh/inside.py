@@ -18,9 +18,8 @@ def winding_numbers(points, verts, tris, chunk=32):
 
 
 def solid_angles(points, corners, chunk=32):
-    """(k,t): the arctangent of each point (k,3) and triangle (corners
-    (t,3,3)) that winding_numbers sums: each row's sum over 2 pi is the point's winding number, to
-    the bit (the same arithmetic, row by row)."""
+    """(k,t) terms of points (k,3) and triangles (corners (t,3,3)), those winding_numbers sums: each
+    row's sum over 2 pi is the point's winding number, to the bit (the same arithmetic, row by row)."""
     points = np.ascontiguousarray(points, dtype=np.float64)
     out = np.empty((len(points), len(corners)))
     for start, angles in _angle_chunks(points, np.asarray(corners, dtype=np.float64), chunk):
