@@ -16,7 +16,7 @@ from ..blender import bridge, landmarks, scene
 from ..blender.scene import head_root
 from ..core import mpeg4
 from ..core.exceptions import HeadAdaptError
-from . import jobs
+from . import jobs, kept
 from .jobs import Job, Modal, Run
 from .props import apply_display
 
@@ -378,19 +378,24 @@ def check_clicks(context):
         raise HeadAdaptError(problem)
     scan, verts, tris = _scan_arrays(context)
     pts = landmarks.get_landmarks(scan)
+    options = adapt_options(settings(context))
+    key = kept.digest(verts, tris, pts, options)
+    answer = kept.get(key)           # the same scan, clicks and options judged before: as it was
     try:
-        fit, _tpl_fdps, q_fdp, sim, info = pipeline.calibrate(template(), verts, tris, pts,
-                                                              adapt_options(settings(context)))
-        pipeline.check_on_surface(fit.scan, q_fdp, fit.options)
+        if answer is None:
+            answer = pipeline.calibrate(template(), verts, tris, pts, options)
+            pipeline.check_on_surface(answer[0].scan, answer[2], options)
     except HeadAdaptError as exc:
         hint = unit_hint(verts, pts)
         raise HeadAdaptError(str(exc) + (f"; {hint}" if hint else "")) from exc
+    _fit, _tpl_fdps, q_fdp, sim, info = answer
     rms_mm = info["rms"] * 1000.0
     head_mm = head_size_mm()
     if rms_mm > CALIBRATION_RMS_LIMIT * head_mm:
         raise HeadAdaptError(f"the landmarks do not fit the template's face: calibration RMS {rms_mm:.1f} mm is "
                              f"{100 * rms_mm / head_mm:.0f}% of the head's width ({head_mm:.0f} mm; limit "
                              f"{100 * CALIBRATION_RMS_LIMIT:.0f}%): FDPs given the wrong names, or a mirrored scan")
+    kept.keep(key, answer)           # for the Adapt that follows (ui/kept.py)
     return q_fdp, sim, info, rms_mm
 
 
@@ -456,9 +461,14 @@ class AdaptRun(Run):
         pts = landmarks.get_landmarks(self.scan)
         opts = adapt_options(s, levels)
         tpl = template()
+        # the scan as the last Calibrate prepared it, if that was this scan with these clicks and options:
+        # this run's alone until it is done (ui/kept.py)
+        self.key = kept.digest(verts, tris, pts, opts)
+        self.calibrated = calibrated = kept.take(self.key)
 
         def work(say):
-            result = adapt(tpl, verts, tris, pts, opts, progress=lambda f, msg: say(0.9 * f, msg))
+            result = adapt(tpl, verts, tris, pts, opts, progress=lambda f, msg: say(0.9 * f, msg),
+                           calibrated=calibrated)
             say(0.9, "carrying the anatomy along")
             return result, transfer(tpl, result)
 
@@ -469,6 +479,8 @@ class AdaptRun(Run):
         """Build the result objects (replacing the last result unless kept), store the report, say how it went."""
         import time
         result, anatomy = value
+        if self.calibrated is not None:
+            kept.keep(self.key, self.calibrated)      # for the next Adapt of the same
 
         from ..blender import blendout
         from ..core.adapt import outcome as outcome_text
@@ -632,4 +644,22 @@ classes = (HEADADAPT_OT_add_template, HEADADAPT_OT_use_active_as_scan, HEADADAPT
            HEADADAPT_OT_bake_expressions, HEADADAPT_OT_import_fap, HEADADAPT_OT_save_picture)
 
 
-register, unregister = bpy.utils.register_classes_factory(classes)
+_register_classes, _unregister_classes = bpy.utils.register_classes_factory(classes)
+
+
+@bpy.app.handlers.persistent
+def _forget_kept(*_args):
+    """Another file loaded: its scans are others (and the memory is freed)."""
+    kept.forget()
+
+
+def register():
+    _register_classes()
+    bpy.app.handlers.load_post.append(_forget_kept)
+
+
+def unregister():
+    if _forget_kept in bpy.app.handlers.load_post:
+        bpy.app.handlers.load_post.remove(_forget_kept)
+    kept.forget()
+    _unregister_classes()

@@ -98,6 +98,39 @@ def test_the_whole_workflow_runs_through_bpy_ops(ui_scene, capfd):
         np.testing.assert_array_equal(_verts(scan), before)     # the scan is never changed
 
 
+def test_adapt_after_calibrate_fits_the_scan_calibrate_prepared(ui_scene):
+    """Calibrate's prepared scan is kept for the Adapt of the same scan, clicks and options (and for
+    the Adapt after that): the report says so and the head is the one an Adapt alone makes, to the
+    bit. A click moved since is calibrated anew."""
+    import bpy
+
+    from headadapt_addon.blender import landmarks
+
+    def adapted():
+        assert bpy.ops.headadapt.adapt() == {"FINISHED"}
+        root = bpy.context.scene.headadapt.result_root
+        skin = next(o for o in root.children_recursive if o.get("headadapt_part") == "skin")
+        rep = json.loads(bpy.context.scene.headadapt.report_json)
+        return _verts(skin), rep["calibration"].get("scan_prepared_before", False)
+
+    with bpy.context.temp_override(**ui_scene):
+        scan = _add_scan()
+        assert bpy.ops.headadapt.use_active_as_scan() == {"FINISHED"}
+        assert bpy.ops.headadapt.import_landmarks(filepath=str(SAMPLE_DIR / "landmarks.json")) == {"FINISHED"}
+        bpy.context.scene.headadapt.max_levels = 1
+        alone, reused = adapted()
+        assert not reused
+        assert bpy.ops.headadapt.calibrate() == {"FINISHED"}
+        for _ in range(2):
+            verts, reused = adapted()
+            assert reused and np.array_equal(verts, alone)
+        clicks = landmarks.get_landmarks(scan)
+        clicks["9.3"] = clicks["9.3"] + 0.5                 # the nose tip half a millimetre off
+        landmarks.set_landmarks(scan, clicks)
+        verts, reused = adapted()
+        assert not reused and not np.array_equal(verts, alone)
+
+
 @pytest.mark.slow
 def test_adapt_warns_when_the_fit_cannot_be_trusted_and_the_report_panel_says_why(ui_scene, tmp_path, capfd):
     """Level 0 only on the sample scan with a fringe over the forehead and a wrong click (the real

@@ -118,3 +118,25 @@ def test_the_template_side_begun_on_a_worker_is_the_one_made_here():
     failed.set_exception(MemoryError())
     here.derived["x"] = failed
     assert fit.template_side(here, "x", lambda: 42) == 42 and here.derived["x"] == 42
+
+
+def test_a_kept_calibration_fits_the_same_to_the_bit(tpl):
+    """adapt(calibrated=...) on calibrate()'s answer (the panel's Calibrate, kept for Adapt): the scan
+    it prepared (here clustered on a 2 mm grid) is the one fitted, as often as asked, and every fit is
+    the fresh one to the bit."""
+    from headadapt_addon.batch import SAMPLE_DIR
+    from headadapt_addon.core import meshio
+    from headadapt_addon.core.adapt import pipeline
+
+    verts, tris = meshio.read_mesh(SAMPLE_DIR / "scan.ply")
+    clicks = meshio.read_landmarks(SAMPLE_DIR / "landmarks.json")
+    options = AdaptOptions(scan_cell=0.002, max_levels=2)
+    fresh = adapt(tpl, verts, tris, clicks, options)
+    kept = pipeline.calibrate(tpl, verts, tris, clicks, options)
+    for _ in range(2):
+        res = adapt(tpl, verts, tris, clicks, options, calibrated=kept)
+        assert res.scan is kept[0].scan and res.calibration_info["scan_prepared_before"]
+        assert res.calibration_info["scan_clustered"] == fresh.calibration_info["scan_clustered"]
+        assert np.array_equal(res.verts, fresh.verts) and np.array_equal(res.verts_scan, fresh.verts_scan)
+        assert [lv.E for lv in res.levels] == [lv.E for lv in fresh.levels]
+    assert "scan_prepared_before" not in fresh.calibration_info

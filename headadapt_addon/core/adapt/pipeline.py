@@ -33,30 +33,40 @@ from .scan import ScanSide, start_spatial
 
 def adapt(tpl: Template, scan_verts: np.ndarray, scan_tris: np.ndarray, scan_fdps: dict[str, np.ndarray],
           options: AdaptOptions | None = None, markers: dict[str, np.ndarray] | None = None,
-          progress: Callable[[float, str], None] | None = None) -> AdaptResult:
+          progress: Callable[[float, str], None] | None = None, calibrated: tuple | None = None) -> AdaptResult:
     """Adapt the template skin onto a scan; scan and FDPs in the scan's frame/unit; returns AdaptResult.
 
     scan_fdps: {FDP id: (3,)} clicked on the scan. markers: optional {marker name or held-out FDP id:
-    (3,)} on the scan (for E_m). progress: optional callable(fraction 0..1, message).
+    (3,)} on the scan (for E_m). progress: optional callable(fraction 0..1, message). calibrated:
+    calibrate()'s answer for this very scan, these clicks and options, if the caller kept one (the
+    panel's Calibrate): its prepared scan (a dense scan's clusters, normals, spatial tree) is used
+    as it is, and the fit is the same to the bit.
     """
     options = options or AdaptOptions()
     # the template's side of the fit, made on a worker while the scan is calibrated; waited for before
     # returning or raising, so that no worker outlives the call (Blender runs operators next)
     pending = prefetch(tpl, options)
     try:
-        return _adapt(tpl, scan_verts, scan_tris, scan_fdps, options, markers, progress)
+        return _adapt(tpl, scan_verts, scan_tris, scan_fdps, options, markers, progress, calibrated)
     finally:
         _settle(pending)
 
 
-def _adapt(tpl, scan_verts, scan_tris, scan_fdps, options, markers, progress):
+def _adapt(tpl, scan_verts, scan_tris, scan_fdps, options, markers, progress, calibrated=None):
     """adapt's steps (the worker begun by adapt aside)."""
     t_start = time.perf_counter()
     say = progress or (lambda f, msg: None)
 
     # 1. calibration (sec 3.1), after left/right labels that look swapped are put right
     say(0.02, "calibrating")
-    fit, tpl_fdps, q_fdp, sim, cal_info = calibrate(tpl, scan_verts, scan_tris, scan_fdps, options)
+    if calibrated is None:
+        fit, tpl_fdps, q_fdp, sim, cal_info = calibrate(tpl, scan_verts, scan_tris, scan_fdps, options)
+        spent = 0.0
+    else:                       # the scan prepared before: a new fit on it (its seconds then are not this run's)
+        kept, tpl_fdps, q_fdp, sim, cal_info = calibrated
+        fit = Fit(tpl, kept.scan, options, kept.threshold)
+        cal_info = {**cal_info, "scan_prepared_before": True}
+        spent = kept.scan.seconds["build"] + kept.scan.seconds["curvature"]
     box = face_box(fit.scan, q_fdp)
     if options.use_curvature and options.max_levels > 0:
         fit.scan.curvature(box)             # level 1's, made while the scan's spatial tree is built
@@ -128,7 +138,7 @@ def _adapt(tpl, scan_verts, scan_tris, scan_fdps, options, markers, progress):
     say(1.0, f"done: best level {best}")
     # the scan's preparation (ScanSide's normals and border, its spatial tree's wait, the curvature: all
     # before level 0) apart
-    prep = fit.scan.seconds["build"] + fit.scan.seconds["curvature"]
+    prep = fit.scan.seconds["build"] + fit.scan.seconds["curvature"] - spent
     stages = {"calibrate": t_cal - prep, "prepare": prep, **{f"level_{lv.level}": lv.seconds for lv in levels},
               "unfold": unfolding.seconds + time.perf_counter() - t0}
     return AdaptResult(verts=verts, verts_scan=sim.inverse().apply(verts), similarity=sim, levels=levels,
