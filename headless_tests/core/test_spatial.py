@@ -222,6 +222,11 @@ def test_small_and_empty_inputs():
     p, f, d = q.closest_points(np.zeros((0, 3)))
     assert p.shape == (0, 3) and len(f) == 0 and len(d) == 0
     assert len(q.ray_cast(np.zeros((0, 3)), np.zeros((0, 3)), 1.0).hit) == 0
+    # a mesh with no triangles: nothing near, nothing hit (the tree was not built: a max of nothing)
+    q = spatial.MeshQuery(verts, np.zeros((0, 3), int))
+    p, f, d = q.closest_points([[0.2, 0.2, 1.0]])
+    assert np.isnan(p).all() and np.isinf(d).all()
+    assert not q.ray_cast([[0.2, 0.2, 1.0]], [[0, 0, -1]], 2.0).hit.any()
 
 
 def test_a_hit_the_exact_test_takes_just_off_an_edge_is_found():
