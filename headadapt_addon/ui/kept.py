@@ -3,12 +3,14 @@
 Calibrate (and Suggest the Rest, which judges the clicks the same way) runs the adaptation's step 1,
 pipeline.calibrate: the scan taken into the template frame, a dense scan clustered, its normals,
 border and spatial tree made. On a 1M-vertex scan that is about 0.7 s, which Adapt would spend again
-on the same scan, clicks and options. Its answer is kept here under a digest of those (one answer at a
-time), and an Adapt of the same takes it (adapt(calibrated=...): the same fit to the bit) and gives it
-back when it is done. An Adapt holds it while it runs, so no two runs share it; a cancelled or failed
-Adapt drops it. Any change of the mesh, a click or an option is another digest: calibrated anew.
+on the same scan, clicks and options. Its answer is kept here under a digest of those (one answer at
+a time; the levels asked for left out: they do not change it), and an Adapt of the same takes it
+(adapt(calibrated=...): the same fit to the bit) and gives it back when it is done. An Adapt holds
+it while it runs, so no two runs share it; a cancelled or failed Adapt drops it. Any change of the
+mesh, a click or another option is another digest: calibrated anew.
 """
 
+import dataclasses
 import hashlib
 
 import numpy as np
@@ -26,7 +28,8 @@ def digest(verts, tris, clicks, options):
         h.update(a.data.cast("B"))
     for name in sorted(clicks):
         h.update(name.encode() + b"\0" + np.asarray(clicks[name], dtype=np.float64).tobytes())
-    h.update(repr(options).encode())
+    # the levels asked for do not change the calibration (Adapt All Levels and Level 0 Only share it)
+    h.update(repr(dataclasses.replace(options, max_levels=0)).encode())
     return h.hexdigest()
 
 

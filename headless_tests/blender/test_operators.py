@@ -106,8 +106,8 @@ def test_adapt_after_calibrate_fits_the_scan_calibrate_prepared(ui_scene):
 
     from headadapt_addon.blender import landmarks
 
-    def adapted():
-        assert bpy.ops.headadapt.adapt() == {"FINISHED"}
+    def adapted(levels=-1):
+        assert bpy.ops.headadapt.adapt(levels=levels) == {"FINISHED"}
         root = bpy.context.scene.headadapt.result_root
         skin = next(o for o in root.children_recursive if o.get("headadapt_part") == "skin")
         rep = json.loads(bpy.context.scene.headadapt.report_json)
@@ -124,6 +124,7 @@ def test_adapt_after_calibrate_fits_the_scan_calibrate_prepared(ui_scene):
         for _ in range(2):
             verts, reused = adapted()
             assert reused and np.array_equal(verts, alone)
+        assert adapted(levels=0)[1]                          # Level 0 Only: the same calibration
         clicks = landmarks.get_landmarks(scan)
         clicks["9.3"] = clicks["9.3"] + 0.5                 # the nose tip half a millimetre off
         landmarks.set_landmarks(scan, clicks)
