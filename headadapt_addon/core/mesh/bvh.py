@@ -36,10 +36,8 @@ def _spread_bits(x):
 def _morton_order(cent):
     """Slots -> triangles: the centroids (three coordinate arrays) sorted along a Morton (Z-order)
     curve on a cubic 2^21 grid over their box, so that each run of slots is a compact cluster."""
-    if not len(cent[0]):
-        return np.zeros(0, np.int64)
-    lo = np.array([c.min() for c in cent])
-    span = max(max(c.max() - lo[k] for k, c in enumerate(cent)), 1e-300)
+    lo = np.array([c.min() if len(c) else 0.0 for c in cent])                       # (no triangles: no order)
+    span = max(max((c.max() - lo[k] for k, c in enumerate(cent) if len(c)), default=0.0), 1e-300)
     code = np.zeros(len(cent[0]), np.uint64)
     for k, c in enumerate(cent):
         code |= _spread_bits(((c - lo[k]) * ((2 ** 21 - 1) / span)).astype(np.uint64)) << np.uint64(k)
