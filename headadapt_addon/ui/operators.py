@@ -228,10 +228,12 @@ class HEADADAPT_OT_suggest_landmarks(_Base, bpy.types.Operator):
 
     def execute(self, context):
         from ..core.adapt import suggest
-        scan, verts, tris = _scan_arrays(context)
+        scan = settings(context).scan
         try:       # the clicks judged as Calibrate judges them: a wrong unit or wrong names refused, named
-            check_clicks(context)
-            proposed = suggest.suggest_fdps(template(), verts, tris, landmarks.get_landmarks(scan))
+            verts, tris, (fit, _tpl_fdps, _q_fdp, sim, _info), _rms = check_clicks(context)
+            # snapped to the scan as that judging prepared it (its tree made already; a dense scan's clusters)
+            proposed = suggest.suggest_fdps(template(), verts, tris, landmarks.get_landmarks(scan),
+                                            snap=suggest.snap_to_prepared(fit.scan, sim))
         except HeadAdaptError as exc:
             return self.fail(str(exc))
         if not proposed:
@@ -351,7 +353,7 @@ class HEADADAPT_OT_calibrate(_Base, bpy.types.Operator):
         s = settings(context)
         s.calibration_rms_mm = -1.0
         try:
-            q_fdp, sim, info, rms_mm = check_clicks(context)
+            _verts, _tris, (_fit, _tpl_fdps, q_fdp, sim, info), rms_mm = check_clicks(context)
         except HeadAdaptError as exc:
             return self.fail(str(exc))
         head_mm = head_size_mm()
@@ -370,8 +372,9 @@ class HEADADAPT_OT_calibrate(_Base, bpy.types.Operator):
 
 def check_clicks(context):
     """The batch's step 1 on the scene's clicks (labels put right, the similarity, every click on the
-    scan), the RMS judged against the head's width: (clicked FDPs, similarity, info, RMS mm), or a
-    HeadAdaptError naming the cause (too few, another unit, wrong names, a mirrored scan)."""
+    scan), the RMS judged against the head's width: (the scan's verts and tris as read, pipeline.calibrate's
+    answer (fit, template FDPs, clicked FDPs, similarity, info), RMS mm), or a HeadAdaptError naming the
+    cause (too few, another unit, wrong names, a mirrored scan)."""
     from ..core.adapt import pipeline
     problem = landmark_problem(context)
     if problem:
@@ -388,15 +391,14 @@ def check_clicks(context):
     except HeadAdaptError as exc:
         hint = unit_hint(verts, pts)
         raise HeadAdaptError(str(exc) + (f"; {hint}" if hint else "")) from exc
-    _fit, _tpl_fdps, q_fdp, sim, info = answer
-    rms_mm = info["rms"] * 1000.0
+    rms_mm = answer[4]["rms"] * 1000.0
     head_mm = head_size_mm()
     if rms_mm > CALIBRATION_RMS_LIMIT * head_mm:
         raise HeadAdaptError(f"the landmarks do not fit the template's face: calibration RMS {rms_mm:.1f} mm is "
                              f"{100 * rms_mm / head_mm:.0f}% of the head's width ({head_mm:.0f} mm; limit "
                              f"{100 * CALIBRATION_RMS_LIMIT:.0f}%): FDPs given the wrong names, or a mirrored scan")
     kept.keep(key, answer)           # for the Adapt that follows (ui/kept.py)
-    return q_fdp, sim, info, rms_mm
+    return verts, tris, answer, rms_mm
 
 
 CALIBRATION_RMS_LIMIT = 0.05     # of the head's width: people's faces differ from the template's by 1-3%

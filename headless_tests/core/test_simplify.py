@@ -140,3 +140,27 @@ def test_a_kept_calibration_fits_the_same_to_the_bit(tpl):
         assert np.array_equal(res.verts, fresh.verts) and np.array_equal(res.verts_scan, fresh.verts_scan)
         assert [lv.E for lv in res.levels] == [lv.E for lv in fresh.levels]
     assert "scan_prepared_before" not in fresh.calibration_info
+
+
+def test_suggestions_snap_to_the_prepared_scan_as_to_the_scan(tpl):
+    """Suggest the Rest snaps its proposals to the scan as calibrate() prepared it (the panel's): on a
+    scan fitted whole they are the scan's own closest points up to rounding; on a scan clustered to a
+    2 mm grid (twice the sample's edge, the harshest case) within half a cell of the scan and at
+    most a cell and a half from where the scan itself puts them (people's clicks spread 2 to 3 mm)."""
+    from headadapt_addon.batch import SAMPLE_DIR
+    from headadapt_addon.core import meshio, mpeg4
+    from headadapt_addon.core.adapt import pipeline, suggest
+
+    verts, tris = meshio.read_mesh(SAMPLE_DIR / "scan.ply")                     # mm
+    clicks = {k: v for k, v in meshio.read_landmarks(SAMPLE_DIR / "landmarks.json").items() if k in mpeg4.CLICKS_8}
+    plain = suggest.suggest_fdps(tpl, verts, tris, clicks)
+    assert len(plain) > 50 and not set(plain) & set(clicks)
+    query = spatial.MeshQuery(verts, tris)
+    for cell, gap_mm, off_mm in ((0.0, 1e-9, 1e-9), (0.002, 1.0, 3.0)):
+        fit_, _, _, sim, _ = pipeline.calibrate(tpl, verts, tris, clicks, AdaptOptions(scan_cell=cell))
+        got = suggest.suggest_fdps(tpl, verts, tris, clicks, snap=suggest.snap_to_prepared(fit_.scan, sim))
+        assert set(got) == set(plain)
+        off = np.array([np.linalg.norm(got[k] - plain[k]) for k in plain])
+        gap = query.closest_points(np.array(list(got.values())))[2]
+        assert gap.max() < gap_mm and off.max() < off_mm, (cell, gap.max(), off.max())
+        assert (gap.max() > 1e-6) == (cell > 0)             # the clusters' surface, not the scan's
