@@ -9,10 +9,11 @@ operator through bpy.ops as a script presses it (the work waited for), seconds o
   Adapt                  the fit and the anatomy transfer on the scan Calibrate prepared, the result
                          objects built
   Adapt again            the same (the prepared scan given back by the Adapt before)
-  Adapt alone            the same with the kept calibration dropped (ui/kept.forget): an Adapt with
-                         no Calibrate before it
-  Suggest the Rest       proposals for the FDPs not clicked (snapped to the whole scan)
-and the report's stage seconds of the last Adapt. --repeat runs of the whole sequence; each figure is
+  Suggest the Rest       proposals for the FDPs not clicked, the clicks judged as Calibrate judged them
+                         (the same: kept), snapped to the scan as that prepared it
+  Adapt alone            Adapt with the kept calibration dropped (ui/kept.forget): no Calibrate before it
+  Suggest the Rest alone the same for Suggest the Rest (as an artist's first press, before Calibrate)
+and the stage seconds of Adapt alone's report. --repeat runs of the whole sequence; each figure is
 the fastest of them.
 """
 import argparse
@@ -56,9 +57,11 @@ def session(scan, marks):
             press("Calibrate", bpy.ops.headadapt.calibrate)
             press("Adapt", bpy.ops.headadapt.adapt)
             press("Adapt again", bpy.ops.headadapt.adapt)
+            press("Suggest the Rest", bpy.ops.headadapt.suggest_landmarks)
             kept.forget()
             press("Adapt alone", bpy.ops.headadapt.adapt)
-            press("Suggest the Rest", bpy.ops.headadapt.suggest_landmarks)
+            kept.forget()
+            press("Suggest the Rest alone", bpy.ops.headadapt.suggest_landmarks)
             report = json.loads(bpy.context.scene.headadapt.report_json)
         return times, report
     finally:
@@ -81,7 +84,7 @@ def main(argv=None):
         for k, v in best.items():
             print(f"  {k:24s} {v:6.2f} s")
         report = runs[-1][1]
-        print("  the last Adapt's stages (s): " + ", ".join(f"{k} {v:.2f}" for k, v in report["stage_seconds"].items()))
+        print("  Adapt alone's stages (s): " + ", ".join(f"{k} {v:.2f}" for k, v in report["stage_seconds"].items()))
 
 
 if __name__ == "__main__":
