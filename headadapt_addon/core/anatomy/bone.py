@@ -136,10 +136,13 @@ def clear_visible_skin(tpl, skin, cranium, mandible, limit=0.48, radius=0.008, s
     keep_inside puts every bone point under the skin; this is the converse, for skin points that a
     thin scan brings down onto a bone rim (lids over the orbit's edge, brows): while a visible skin
     vertex near the bone has a winding number over `limit` w.r.t. the bone, the bone within
-    `radius` of it steps `step` deeper (fading with distance), each bone vertex along the inward
-    normal of the skin vertex the template offset it from. A step that would take a bone point
-    into a pocket of the skin (the eye socket behind the lids) slides along the pocket's lining
-    instead, or is not taken, so the bone stays inside the skin. skin_inside, bone_inside: the
+    `radius` of it steps deeper, each bone vertex along the inward normal of the skin vertex the
+    template offset it from, by the largest step any such vertex asks of it (`step`, fading with
+    distance; not their sum, which pressed a rim under a row of lid vertices several millimetres a
+    round). A step that would take a bone point into a pocket of the skin (the eye socket behind the
+    lids) slides along the pocket's lining instead, or is not taken (the point is frozen), so the
+    bone stays inside the skin; a skin vertex whose nearest bone face has every corner frozen is left
+    to lift_visible_skin (pressing the bone round it never cleared it). skin_inside, bone_inside: the
     skin's and the skull's FastWinding if the caller has them (the skull's is refit as it moves).
     """
     from scipy.spatial import cKDTree
@@ -169,14 +172,18 @@ def clear_visible_skin(tpl, skin, cranium, mandible, limit=0.48, radius=0.008, s
     for _ in range(rounds):
         w = bone_inside.refit(bone)(skin[check])
         bad = check[w > limit]
+        if len(bad) and frozen.any():          # held by bone that may not move: left to the lift
+            _, face, _ = MeshQuery(bone, tris, backend="numpy").closest_points(skin[bad])
+            bad = bad[~frozen[tris[face]].all(axis=1)]
         if not len(bad):
             if len(check) == len(near):
                 break
             check = near                          # a last look at every point near the bone
             continue
         pairs = cKDTree(skin[bad]).sparse_distance_matrix(cKDTree(bone), radius, output_type="coo_matrix")
-        push = np.zeros_like(bone)
-        np.add.at(push, pairs.col, (step * (1.0 - pairs.data / radius))[:, None] * inward[pairs.col])
+        size = np.zeros(len(bone))            # the largest step any point asks of each bone vertex
+        np.maximum.at(size, pairs.col, step * (1.0 - pairs.data / radius))
+        push = size[:, None] * inward
         push[frozen] = 0.0
         moved = bone + push
         # a bone point by a pocket (the orbit behind the lids) stops before it leaves the skin
