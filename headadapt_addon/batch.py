@@ -60,7 +60,7 @@ EXIT_OK, EXIT_BUG, EXIT_BAD_INPUT, EXIT_UNTRUSTWORTHY, EXIT_SCAN_FAILED, EXIT_IN
 
 def build_parser():
     """The command-line interface of the batch job."""
-    from .core.adapt.options import AdaptOptions
+    from .core.adapt.options import MAX_LEVELS, AdaptOptions
 
     parser = argparse.ArgumentParser(prog="headadapt", description=__doc__.split("\n\n")[0],
                                      epilog=__doc__.split("\n\n")[-1],      # the exit codes
@@ -68,8 +68,9 @@ def build_parser():
     sub = parser.add_subparsers(dest="command", required=True)
 
     def common(p):
-        p.add_argument("--levels", type=int, default=AdaptOptions.max_levels,
-                       help="maximum number of levels after level 0 (default %(default)s)")
+        p.add_argument("--levels", type=int, default=AdaptOptions.max_levels, choices=range(MAX_LEVELS + 1),
+                       metavar="LEVELS", help=f"maximum number of levels after level 0, 0 to {MAX_LEVELS} "
+                                              "(default %(default)s)")
         p.add_argument("--calibration", choices=("auto", "paper", "umeyama"), default="auto")
         p.add_argument("--keep-flagged", action="store_true",
                        help="keep FDPs flagged as wrongly clicked (default: drop them and say so)")
@@ -273,14 +274,18 @@ def _adapt_and_write(record, verts, tris, points, markers, outputs, levels, cali
     from .core import meshio
     from .core.adapt import adapt
     from .core.adapt import outcome as outcome_text
+    from .core.exceptions import HeadAdaptError, LandmarkError
     from .core.template import load_template
 
     tpl = load_template()
     options = adapt_options(levels, calibration, keep_flagged)
     log(f"headadapt: {pathlib.Path(record['scan']).name}: {len(verts):,} vertices, {len(tris):,} triangles, "
         f"{len(points)} FDPs")
-    result = adapt(tpl, verts, tris, points, options, markers=markers,
-                   progress=lambda f, msg: log(f"  {100 * f:5.1f}%  {msg}"))
+    try:
+        result = adapt(tpl, verts, tris, points, options, markers=markers,
+                       progress=lambda f, msg: log(f"  {100 * f:5.1f}%  {msg}"))
+    except HeadAdaptError as exc:        # the one line names the file at fault: the clicks', else the scan
+        raise type(exc)(f"{record['landmarks' if isinstance(exc, LandmarkError) else 'scan']}: {exc}") from None
     report = {
         **record, "status": "done",
         "template_sha256": tpl.meta["content_sha256"],

@@ -4,7 +4,8 @@
 
 Scans (truncated, huge or negative counts, NaN, non-UTF-8, 0-byte, a Blender-exported binary PLY of
 quads and triangles, truncated), landmark files (NaN, deep JSON, XML entity bombs, non-UTF-8, 0-byte)
-and .fap files (an 18-byte file declaring 10^8 frames, huge numbers). Each hostile file goes through
+landmark files that read but do not fit the scan (another unit, another scan's, too few, one spot
+clicked twice) and .fap files (an 18-byte file declaring 10^8 frames, huge numbers). Each hostile file goes through
 ``batch adapt`` (a .fap through read_fap, as Import .fap calls it) in its own process: it must exit 2
 with one stderr line naming the file, within 5 s and 1 GB peak resident memory; each valid scan
 must adapt (exit 0 or 3). Then folder mode over good, corrupt and hanging scans must finish the good
@@ -57,6 +58,25 @@ def blender_mixed_ply(path: pathlib.Path) -> None:
         f"bpy.ops.wm.ply_export(filepath={str(path)!r}, ascii_format=False, export_normals=False, "
         "export_uv=False, export_colors='NONE')\n")
     subprocess.run([sys.executable, "-c", code], check=True, capture_output=True, cwd=ROOT, timeout=300)
+
+
+def clicks_that_do_not_fit(scan_verts: np.ndarray) -> dict[str, tuple[bytes, str]]:
+    """Landmark files of the sample scan's own clicks, changed the ways a person's mix-ups change them."""
+    points = json.loads((SAMPLE_DIR / "landmarks.json").read_text())["points"]
+    p = {k: np.asarray(x, dtype=np.float64) for k, x in points.items()}
+    size = float(np.linalg.norm(np.ptp(scan_verts, axis=0)))
+    names = list(p)
+
+    def dump(q):
+        return json.dumps({"points": {k: [float(c) for c in x] for k, x in q.items()}}).encode()
+
+    return {
+        "clicks_1000x.json": (dump({k: 1000 * x for k, x in p.items()}), "the clicks in a unit 1000 times smaller"),
+        "clicks_0.001x.json": (dump({k: x / 1000 for k, x in p.items()}), "the clicks in a unit 1000 times larger"),
+        "clicks_elsewhere.json": (dump({k: x + 2 * size for k, x in p.items()}), "another scan's clicks, 2 scans away"),
+        "clicks_3.json": (dump({k: p[k] for k in names[:3]}), "3 clicks"),
+        "clicked_twice.json": (dump({**p, names[1]: p[names[0]]}), "two FDPs at one spot"),
+    }
 
 
 def build(d: pathlib.Path) -> tuple[dict[str, bytes], dict[str, bytes]]:
@@ -130,6 +150,8 @@ def build(d: pathlib.Path) -> tuple[dict[str, bytes], dict[str, bytes]]:
                                b"\n<PickedPoints><point name='&x;' x='0' y='0' z='0'/></PickedPoints>\n",
                                "XML external entity"),
         "truncated.pp": (b"<!DOCTYPE PickedPoints>\n<PickedPoints><point name='3.7' x='0'", "cut short"),
+        # landmark files that read but do not fit the sample scan (its clicks, changed)
+        **clicks_that_do_not_fit(v),
         # .fap files (read_fap, as Import .fap calls it)
         "huge_frames.fap": (b"2.1 x 25 100000000\n", "18 bytes declaring 1e8 frames"),
         "huge_frame_number.fap": (f"2.1 x 25 1\n{MASK}\n1e300 5\n".encode(), "frame number 1e300"),

@@ -4,7 +4,7 @@ import bpy
 
 from ..blender import view
 from ..core import mpeg4
-from ..core.adapt.options import AdaptOptions
+from ..core.adapt.options import MAX_LEVELS, AdaptOptions
 
 
 def _is_mesh(_self, obj):
@@ -49,7 +49,7 @@ class HeadAdaptSettings(bpy.types.PropertyGroup):
     active_fdp: bpy.props.EnumProperty(
         name="FDP", items=[(k, k, f.label) for k, f in mpeg4.FDPS.items()], default=mpeg4.CLICKS_8[0],
         description="The FDP the next click places")
-    max_levels: bpy.props.IntProperty(name="Levels", default=AdaptOptions.max_levels, min=0, max=8,
+    max_levels: bpy.props.IntProperty(name="Levels", default=AdaptOptions.max_levels, min=0, max=MAX_LEVELS,
                                       description="Maximum number of refinement levels after level 0")
     calibration: bpy.props.EnumProperty(
         name="Calibration", default="auto",

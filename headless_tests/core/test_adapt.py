@@ -111,13 +111,15 @@ def test_wrong_click_is_named_and_dropped(tpl, heads):
     assert len(res.flagged) <= 2
 
 
-@pytest.mark.parametrize("case", ["nan", "unknown", "missing", "duplicate", "off_surface", "empty", "quads"])
+@pytest.mark.parametrize("case", ["nan", "unknown", "missing", "duplicate", "off_surface", "another_unit", "empty",
+                                  "quads"])
 def test_bad_input_gets_a_clear_error(tpl, heads, case):
     head = heads[0]
     v, t, clicks = head.scan_verts, head.scan_tris, dict(head.fdp_clicks)
     unit = head.similarity[0]
     expect = {"nan": "3.7", "unknown": "3.15", "missing": "10.9", "duplicate": "3.12",
-              "off_surface": "9.3", "empty": "scan", "quads": "scan"}[case]
+              "off_surface": "9.3", "another_unit": "times smaller than the clicks' spread: another unit",
+              "empty": "scan", "quads": "scan"}[case]
     if case == "nan":
         clicks["3.7"] = np.array([np.nan, 0, 0])
     elif case == "unknown":
@@ -131,6 +133,8 @@ def test_bad_input_gets_a_clear_error(tpl, heads, case):
         clicks["3.12"] = clicks["3.7"].copy()
     elif case == "off_surface":
         clicks["9.3"] = clicks["9.3"] + np.array([0.0, -60e-3, 0.0]) * unit
+    elif case == "another_unit":         # millimetres clicked on a scan in metres
+        clicks = {k: 1000 * p for k, p in clicks.items()}
     elif case == "empty":
         v, t = np.zeros((0, 3)), np.zeros((0, 3), int)
     elif case == "quads":

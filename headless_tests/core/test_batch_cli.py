@@ -222,3 +222,22 @@ def test_a_dense_scan_is_fitted_on_its_clusters_and_says_so(tmp_path, inputs):
     assert clustered["kept"] < 0.6 * clustered["vertices"]
     assert f"{clustered['vertices']:,} -> {clustered['kept']:,} vertices" in proc.stdout
     assert report["outcome"]["ok"] and report["outcome"]["seen_rms_mm"] < 0.5
+
+
+def test_clicks_in_another_unit_exit_2_naming_the_landmark_file(tmp_path, inputs):
+    """Clicks in millimetres on a scan in metres: calibration shrinks the scan to a speck (clustering then
+    erased it, and the run ended in an internal error); now one line names the landmark file and the unit."""
+    scan, marks = inputs
+    points = json.loads(marks.read_text())["points"]
+    mm = tmp_path / "in" / "clicks_mm.json"
+    mm.write_text(json.dumps({"points": {k: [1000 * c for c in p] for k, p in points.items()}}))
+    line = one_error_line(batch("adapt", "--scan", scan, "--landmarks", mm, "--out", tmp_path / "out"))
+    assert line.startswith(f"headadapt: error: {mm}: FDP ") and "times smaller than the clicks' spread" in line, line
+    assert json.loads((tmp_path / "out" / "report.json").read_text())["status"] == "failed"
+
+
+def test_levels_out_of_range_are_refused_before_anything_is_read(tmp_path, inputs):
+    scan, marks = inputs
+    proc = batch("adapt", "--scan", scan, "--landmarks", marks, "--out", tmp_path / "out", "--levels", "9")
+    assert proc.returncode == 2 and "argument --levels: invalid choice: 9" in proc.stderr, proc.stderr
+    assert not (tmp_path / "out").exists()

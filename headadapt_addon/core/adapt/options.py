@@ -17,6 +17,11 @@ FACE_REGIONS = ("forehead", "brow_l", "brow_r", "eyelid_l", "eyelid_r", "nose", 
                 "upper_lip", "lower_lip", "chin_jaw")
 
 
+# the most levels after level 0 a run may ask for: the support halves per level down to the template's
+# finest sample spacing (min_sample_spacing), which level 4 reaches; more levels only repeat the finest
+MAX_LEVELS = 8
+
+
 @dataclasses.dataclass(frozen=True)
 class AdaptOptions:
     """Settings of one adaptation run (lengths in metres of the template frame)."""

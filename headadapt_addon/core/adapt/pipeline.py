@@ -163,13 +163,14 @@ def calibrate(tpl: Template, scan_verts: np.ndarray, scan_tris: np.ndarray, scan
     given, handed = calibration.check_handedness(given, tpl_fdps)
     sim, info = calibration.calibrate(given, tpl_fdps, method=options.calibration)
     sv = sim.apply(scan_verts)
+    q_fdp = {k: sim.apply(v) for k, v in given.items()}
+    check_in_reach(sv, q_fdp, options)
     # a dense scan is clustered once to the detail the fit can use (mesh/simplify.py)
     border, clustered = None, simplify.cluster_if_finer(sv, scan_tris, options.scan_cell)
     if clustered is not None:
         before = len(sv)
         sv, scan_tris, border = clustered                                    # border: the scan's own
         info = {**info, "scan_clustered": {"cell_mm": options.scan_cell * MM, "vertices": before, "kept": len(sv)}}
-    q_fdp = {k: sim.apply(v) for k, v in given.items()}
     # the scan's spatial tree, begun on a worker thread before the winding check below: kept unless it
     # turns a piece (a turned triangle's corners come in another order, and so its rounding)
     early = start_spatial(sv, scan_tris, options) if options.backend == "numpy" else None
@@ -207,11 +208,31 @@ def check_on_surface(scan: ScanSide, q_fdp: dict[str, np.ndarray], options: Adap
     off is another scan's, or in another unit."""
     names = list(q_fdp)
     _, _, dist = scan.query.closest_points(np.array([q_fdp[k] for k in names]))
+    _refuse_far(names, dist, "from the scan surface", options)
+
+
+def check_in_reach(verts: np.ndarray, q_fdp: dict[str, np.ndarray], options: AdaptOptions) -> None:
+    """check_on_surface's test against the scan's bounding box, before the scan is prepared (no point
+    of the box is farther than the surface): clicks in another unit than the scan (millimetres on a
+    scan in metres) shrink the scan to a speck in the template's frame, which clustering would erase."""
+    names = list(q_fdp)
+    q = np.array([q_fdp[k] for k in names])
+    lo, hi = verts.min(axis=0), verts.max(axis=0)
+    dist = np.linalg.norm(np.maximum(lo - q, 0.0) + np.maximum(q - hi, 0.0), axis=1)
+    # a head is 1 to 5 times as wide as its clicks' spread: far outside that, name the unit
+    ratio = np.linalg.norm(hi - lo) / max(float(np.linalg.norm(np.ptp(q, axis=0))), 1e-300)
+    hint = ("" if 0.2 < ratio < 50 else f" (the scan is {max(ratio, 1 / ratio):.0f} times "
+            f"{'wider' if ratio > 1 else 'smaller'} than the clicks' spread: another unit?)")
+    _refuse_far(names, dist, "outside the scan's bounding box", options, hint)
+
+
+def _refuse_far(names: list[str], dist: np.ndarray, where: str, options: AdaptOptions, hint: str = "") -> None:
+    """LandmarkError naming the first FDP farther than options.off_surface_mm (ears: twice that)."""
     for k, d in zip(names, dist):
         limit = options.off_surface_mm * (2 if k in ("3.5", "3.6") else 1)
         if d * MM > limit:
-            raise LandmarkError(f"FDP {k} ({mpeg4.FDPS[k].label}) is {d * MM:.1f} mm from the scan surface "
-                                f"after calibration: landmarks must be picked on this scan (wrong file or unit?)")
+            raise LandmarkError(f"FDP {k} ({mpeg4.FDPS[k].label}) is {d * MM:.1f} mm {where} after "
+                                f"calibration{hint}: landmarks must be picked on this scan (wrong file or unit?)")
 
 
 class Unfolding:

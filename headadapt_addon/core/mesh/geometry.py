@@ -43,7 +43,9 @@ def vertex_sums(t, fc, n):
     """Each vertex's sum (n,3) of its triangles' face_cross, added in triangle order: the area-weighted
     normal before its length is taken."""
     idx = t.ravel()
-    return np.stack([np.bincount(idx, weights=np.repeat(fc[:, c], 3), minlength=n) for c in range(3)], axis=1)
+    # (float even with no triangles: bincount of nothing counts in integers)
+    return np.stack([np.bincount(idx, weights=np.repeat(fc[:, c], 3), minlength=n) for c in range(3)],
+                    axis=1).astype(np.float64, copy=False)
 
 
 def vertex_normals(v, t, sums=None):
