@@ -73,6 +73,24 @@ def test_clustering_ignores_unused_vertices():
     assert np.array_equal(v, v2) and np.array_equal(tris, tris2) and np.array_equal(border, border2)
 
 
+def test_a_piece_kilometres_away_is_clustered_as_one_nearby():
+    """A stray triangle 50 km off (the grid's packed key holds 2^21 cells an axis: 17 km at this cell) gives
+    the head the clusters a stray triangle 1 m off gives it (both below it, so the grid's origin is
+    the same); before, clustering refused the scan with a ValueError (exit 1 in the batch)."""
+    p, t = _sphere()
+    cell = 3 * simplify.median_edge(p, t)
+
+    def with_stray(x):
+        stray = np.array([[x, 0.0, -1.0], [x + 0.01, 0.0, -1.0], [x, 0.01, -1.0]])
+        return simplify.cluster(np.vstack([p, stray]), np.vstack([t, len(p) + np.arange(3)[None]]), cell)
+
+    near, far = with_stray(1.0), with_stray(50000.0)
+    assert np.array_equal(near[1], far[1]) and np.array_equal(near[2], far[2])
+    head = np.ones(len(near[0]), bool)
+    head[near[1][-1]] = False                                # the stray triangle's own clusters
+    assert np.array_equal(near[0][head], far[0][head]) and len(np.unique(near[1][-1])) == 3
+
+
 @pytest.mark.slow
 def test_a_dense_scan_is_clustered_and_fits_as_well(tpl, testheads):
     """A scan-like head remeshed finer (196k vertices, 0.96 mm median edge in the template frame) is

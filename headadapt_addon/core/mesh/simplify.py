@@ -16,6 +16,7 @@ from __future__ import annotations
 import numpy as np
 
 from .. import threads
+from ..exceptions import MeshError
 from . import geometry
 
 BITS = 21           # grid coordinates per axis in one int64 key (a 0.3 m head at 1 mm: 300 cells)
@@ -80,7 +81,11 @@ def cluster(verts, tris, cell):
     for k in range(3):
         g = ((inside[:, k] - lo[k]) * (1.0 / cell)).astype(np.int64)
         if g.max(initial=0) >= 1 << BITS:
-            raise ValueError(f"a grid of {cell} over this mesh needs more than 2^{BITS} cells per axis")
+            # a piece far from the rest (a stray triangle a kilometre off): the cells' ranks along the
+            # axis instead, in the same order, so the same clusters
+            g = unique_inverse(g)[1]
+            if g.max(initial=0) >= 1 << BITS:
+                raise MeshError(f"the mesh spans over 2^{BITS} occupied cells of {cell} along one axis")
         key |= g << (2 - k) * BITS
     n, inv = unique_inverse(key)
     count = np.bincount(inv, minlength=n)
