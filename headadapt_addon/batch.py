@@ -34,6 +34,7 @@ import pathlib
 import signal
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 import traceback
@@ -160,6 +161,27 @@ def remove_results(paths) -> None:
             raise FileFormatError(f"cannot replace {path}: {exc.strerror or exc}") from None
 
 
+def check_writable(outputs: dict[str, pathlib.Path]) -> None:
+    """FileFormatError (exit 2) naming the first output whose folder cannot be made or written, found
+    before the run rather than after its fit (a file in the folder's place, no permission, /proc): a
+    file is created and deleted in the output's folder, or in its nearest existing parent (nothing
+    made is left behind)."""
+    from .core.exceptions import FileFormatError
+
+    for what, out in outputs.items():
+        folder = pathlib.Path(os.path.abspath(out)).parent
+        while not folder.exists() and folder != folder.parent:
+            folder = folder.parent
+        try:
+            if not folder.is_dir():
+                raise FileFormatError(f"cannot write {out} ({what}): {folder} is a file, not a folder")
+            fd, probe = tempfile.mkstemp(prefix=f".{out.name}.", suffix=".probe", dir=folder)
+            os.close(fd)
+            os.unlink(probe)
+        except OSError as exc:
+            raise FileFormatError(f"cannot write {out} ({what}): {exc.strerror or exc}") from None
+
+
 def file_sha256(path: os.PathLike | str) -> str:
     """sha256 of a file's bytes, read in 1 MB blocks."""
     digest = hashlib.sha256()
@@ -201,9 +223,12 @@ def run_adapt(scan_path, landmarks_path, out_dir, levels=None, calibration="auto
     t0 = time.perf_counter()
     out_dir = pathlib.Path(out_dir)
     outputs = result_paths(out_dir, blend, preview)
+    check_outputs([pathlib.Path(scan_path), pathlib.Path(landmarks_path)], outputs, overwrite)
     if preview and pathlib.Path(preview).suffix.lower() != ".png":
         raise FileFormatError(f"--preview {preview}: the preview is a PNG image, name a .png file")
-    check_outputs([pathlib.Path(scan_path), pathlib.Path(landmarks_path)], outputs, overwrite)
+    if blend and pathlib.Path(blend).suffix.lower() != ".blend":
+        raise FileFormatError(f"--blend {blend}: Blender opens a .blend file, name a .blend file")
+    check_writable(outputs)
     remove_results(outputs.values())
     record = {"status": "running", "run": run_id or uuid.uuid4().hex, "scan": str(scan_path),
               "landmarks": str(landmarks_path)}

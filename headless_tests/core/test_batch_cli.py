@@ -145,7 +145,7 @@ def test_an_unwritable_output_folder_exits_2_naming_it(tmp_path, inputs):
     scan, marks = inputs
     (tmp_path / "file").write_text("")
     line = one_error_line(batch("adapt", "--scan", scan, "--landmarks", marks, "--out", tmp_path / "file" / "out"))
-    assert f"cannot write {tmp_path / 'file' / 'out' / 'report.json'}" in line
+    assert f"cannot write {tmp_path / 'file' / 'out'}/" in line and f"{tmp_path / 'file'} is a file, not a folder" in line
 
 
 def test_a_bug_exits_1_with_the_traceback_in_the_log_and_the_scan_named(tmp_path, inputs):
@@ -240,4 +240,25 @@ def test_levels_out_of_range_are_refused_before_anything_is_read(tmp_path, input
     scan, marks = inputs
     proc = batch("adapt", "--scan", scan, "--landmarks", marks, "--out", tmp_path / "out", "--levels", "9")
     assert proc.returncode == 2 and "argument --levels: invalid choice: 9" in proc.stderr, proc.stderr
+    assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("case", ["blend in a folder that is a file", "preview where no file can be made",
+                                  "blend not named .blend"])
+def test_an_output_that_cannot_be_written_is_refused_before_the_fit(tmp_path, inputs, case):
+    """Found before the fit (before, a --preview in /proc ended in an internal error after it, and a
+    --blend named .txt was written as one): one line naming the file, nothing made, the inputs as they were."""
+    scan, marks = inputs
+    (tmp_path / "file").write_text("")
+    extra, named = {
+        "blend in a folder that is a file": (["--blend", tmp_path / "file" / "sub" / "h.blend"], "is a file, not a folder"),
+        "preview where no file can be made": (["--preview", "/proc/headadapt-test.png"], "/proc/headadapt-test.png"),
+        "blend not named .blend": (["--blend", tmp_path / "h.txt"], "name a .blend file"),
+    }[case]
+    before = {p: digest(p) for p in tmp_path.rglob("*") if p.is_file()}
+    proc = batch("adapt", "--scan", scan, "--landmarks", marks, "--out", tmp_path / "out", *extra)
+    line = one_error_line(proc)
+    assert named in line and str(extra[1]) in line, line
+    assert "level" not in proc.stdout                        # refused before the fit
+    assert {p: digest(p) for p in tmp_path.rglob("*") if p.is_file()} == before
     assert not (tmp_path / "out").exists()
