@@ -239,8 +239,11 @@ def render_preview(path, root, scan_obj, px=PREVIEW_VIEW_PX):
     sc.render.image_settings.file_format = "PNG"
     sc.render.image_settings.color_mode = "RGBA"
     columns = (("scan", "SINGLE"), ("head", "VERTEX"))      # what each column shows, in which colour
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp_dir = tempfile.mkdtemp(prefix=f".{path.stem}.", dir=path.parent)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp_dir = tempfile.mkdtemp(prefix=f".{path.stem}.", dir=path.parent)
+    except OSError as exc:
+        raise FileFormatError(f"cannot write the preview {path}: {exc.strerror or exc}") from None
     try:
         rows = []
         for i, cam in enumerate(cams):
