@@ -12,10 +12,14 @@ from ..core.exceptions import MeshError
 def mesh_arrays(obj, *, world=True, depsgraph=None):
     """(verts (n,3) float64, tris (k,3) int64) of a mesh object, in world (or local) coordinates.
 
-    With a depsgraph the evaluated mesh (modifiers applied) is read; the object is never changed.
+    With a depsgraph the evaluated mesh (modifiers applied) is read; the object is never changed. An
+    object in Edit Mode is read as edited: its edits are first written to its mesh (as leaving Edit
+    Mode would write them; until then the mesh holds what it held when Edit Mode began).
     """
     if obj is None or obj.type != "MESH":
         raise MeshError(f"{getattr(obj, 'name', obj)!r} is not a mesh object")
+    if obj.mode == "EDIT":
+        obj.update_from_editmode()
     owner = obj.evaluated_get(depsgraph) if depsgraph is not None else obj
     mesh = owner.to_mesh() if depsgraph is not None else obj.data
     try:

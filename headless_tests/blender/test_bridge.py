@@ -58,3 +58,29 @@ def test_triangles_quads_and_a_modifiers_result_read_as_their_loop_triangles():
     evaluated.to_mesh_clear()
     assert len(tris) == 96 and np.array_equal(verts, ref_v) and np.array_equal(tris, ref_t)
     assert len(mixed.data.vertices) == 9 and len(mixed.data.polygons) == 3
+
+
+def test_a_scan_in_edit_mode_is_read_as_edited():
+    """An artist trims the scan in Edit Mode and presses Calibrate without leaving it: the buttons read
+    the trimmed scan (before, the mesh as it was when Edit Mode began)."""
+    import bmesh
+    import bpy
+
+    from headadapt_addon.blender import bridge
+
+    v, t = meshio.read_mesh(SAMPLE_DIR / "scan.ply")
+    scan = _object("scan", v, t)
+    bpy.context.view_layer.objects.active = scan
+    scan.select_set(True)
+    bpy.ops.object.mode_set(mode="EDIT")
+    try:
+        bm = bmesh.from_edit_mesh(scan.data)
+        cut = np.percentile(v[:, 2], 80)
+        bmesh.ops.delete(bm, geom=[p for p in bm.verts if p.co.z > cut], context="VERTS")
+        bmesh.update_edit_mesh(scan.data)
+        kept = len(bm.verts)
+        verts, tris = bridge.mesh_arrays(scan, world=False)
+        assert len(verts) == kept < 0.85 * len(v) and verts[:, 2].max() <= cut and tris.max() < kept
+        assert scan.mode == "EDIT"                            # still editing
+    finally:
+        bpy.ops.object.mode_set(mode="OBJECT")
