@@ -98,11 +98,14 @@ def read_landmark_file(path: str | os.PathLike) -> tuple[dict[str, np.ndarray], 
     limits.check_count(path, "points", len(points), limits.LANDMARKS_MAX_POINTS)
     out = {}
     for name, xyz in points.items():
+        name = str(name).strip()            # (a MeshLab label typed as "3.7 ")
         try:
-            mpeg4.check_fdp_name(str(name))
+            mpeg4.check_fdp_name(name)
         except LandmarkError as exc:
             raise LandmarkError(f"{path}: {exc}") from None
-        out[str(name)] = _xyz(path, f"FDP {name}", xyz)
+        if name in out:
+            raise _given_twice(path, name)
+        out[name] = _xyz(path, f"FDP {name}", xyz)
     if "markers" in meta:
         markers = meta["markers"]
         if not isinstance(markers, dict):
@@ -131,9 +134,31 @@ def _refuse_constant(name):
     raise ValueError(f"{name} is not a number")
 
 
+class _Twice(Exception):
+    """A name given twice in one JSON object (json.loads would keep the last silently)."""
+
+
+def _unique_keys(pairs):
+    out = {}
+    for key, value in pairs:
+        if key in out:
+            raise _Twice(key)
+        out[key] = value
+    return out
+
+
+def _given_twice(path, name):
+    if str(name).strip() not in mpeg4.FDPS:            # a marker's or another field's name
+        return FileFormatError(f"{path}: {name!r} is given twice in one object")
+    return LandmarkError(f"{path}: FDP {name} is given twice: give each FDP once (one of them is probably "
+                         "another FDP)")
+
+
 def _parse_json(path, text):
     try:
-        data = json.loads(text, parse_constant=_refuse_constant)
+        data = json.loads(text, parse_constant=_refuse_constant, object_pairs_hook=_unique_keys)
+    except _Twice as exc:
+        raise _given_twice(path, exc.args[0]) from None
     except RecursionError:
         raise FileFormatError(f"{path}: cannot read landmarks (JSON nested too deep)") from None
     except ValueError as exc:        # JSONDecodeError, NaN/Infinity, integers too long to convert
@@ -155,6 +180,8 @@ def _parse_pp(path, text):
     for el in root.iter("point"):
         if el.get("active", "1") in ("0", "false"):
             continue
+        if el.get("name") in points:
+            raise _given_twice(path, el.get("name"))
         try:
             points[el.get("name")] = [float(el.get(c)) for c in "xyz"]
         except (TypeError, ValueError):

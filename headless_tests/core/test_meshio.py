@@ -172,6 +172,24 @@ def test_bad_landmark_files_are_named(tmp_path):
         meshio.read_landmarks(tmp_path / "b.json")
 
 
+@pytest.mark.parametrize("text, suffix", [
+    ('{"points": {"3.7": [0, 0, 0], "3.8": [1, 0, 0], "3.7": [2, 0, 0]}}', ".json"),
+    ('{"points": {"3.7": [0, 0, 0], "3.7 ": [2, 0, 0]}}', ".json"),
+    ('<PickedPoints><point name="3.7" x="0" y="0" z="0"/><point name="3.7" x="2" y="0" z="0"/></PickedPoints>', ".pp"),
+])
+def test_an_fdp_given_twice_is_named_not_dropped(tmp_path, text, suffix):
+    """Two points labelled 3.7 (one of them meant 3.8): JSON and the dict of a .pp kept the last and
+    dropped the other silently."""
+    (tmp_path / f"t{suffix}").write_text(text)
+    with pytest.raises(LandmarkError, match=r"FDP 3\.7 is given twice"):
+        meshio.read_landmarks(tmp_path / f"t{suffix}")
+
+
+def test_names_read_without_the_spaces_typed_round_them(tmp_path):
+    (tmp_path / "l.pp").write_text('<PickedPoints><point name="3.7 " x="0" y="0" z="1"/></PickedPoints>')
+    assert list(meshio.read_landmarks(tmp_path / "l.pp")) == ["3.7"]
+
+
 BOMB = ('<?xml version="1.0"?>\n<!DOCTYPE PickedPoints [\n <!ENTITY a "aaaaaaaaaa">\n'
         + "".join(f' <!ENTITY {c} "{("&" + p + ";") * 10}">\n' for p, c in zip("abcdefgh", "bcdefghi"))
         + ']>\n<PickedPoints><point name="&i;" x="0" y="0" z="0"/></PickedPoints>\n')
