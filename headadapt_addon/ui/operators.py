@@ -375,7 +375,7 @@ def check_clicks(context):
     scan), the RMS judged against the head's width: (the scan's verts and tris as read, pipeline.calibrate's
     answer (fit, template FDPs, clicked FDPs, similarity, info), RMS mm), or a HeadAdaptError naming the
     cause (too few, another unit, wrong names, a mirrored scan)."""
-    from ..core.adapt import pipeline
+    from ..core.adapt import calibration, pipeline
     problem = landmark_problem(context)
     if problem:
         raise HeadAdaptError(problem)
@@ -389,8 +389,8 @@ def check_clicks(context):
             answer = pipeline.calibrate(template(), verts, tris, pts, options)
             pipeline.check_on_surface(answer[0].scan, answer[2], options)
     except HeadAdaptError as exc:
-        hint = unit_hint(verts, pts)
-        raise HeadAdaptError(str(exc) + (f"; {hint}" if hint else "")) from exc
+        hint = calibration.unit_hint(verts, pts)
+        raise HeadAdaptError(str(exc) + (f"; {hint}" if hint and hint not in str(exc) else "")) from exc
     rms_mm = answer[4]["rms"] * 1000.0
     head_mm = head_size_mm()
     if rms_mm > CALIBRATION_RMS_LIMIT * head_mm:
@@ -407,20 +407,6 @@ CALIBRATION_RMS_LIMIT = 0.05     # of the head's width: people's faces differ fr
 def head_size_mm():
     """The template head's width (ear to ear), mm: what calibration residuals are judged against."""
     return float(np.ptp(template().skin.verts[:, 0])) * 1000.0
-
-
-def unit_hint(verts, pts):
-    """A sentence naming a unit mismatch when the landmarks' spread and the scan's size differ by more
-    than a factor of 5 (clicks span about 2/3 of a head scan), else ''."""
-    p = np.array(list(pts.values()), dtype=float).reshape(-1, 3)
-    if len(p) < 2 or len(verts) == 0 or not np.isfinite(p).all():
-        return ""
-    ratio = float(np.ptp(verts, axis=0).max()) / max(float(np.ptp(p, axis=0).max()), 1e-12) / 1.5
-    if 0.2 < ratio < 5.0:
-        return ""
-    power = round(float(np.log10(ratio)))
-    return (f"the landmarks are about 10^{power} times {'smaller' if power > 0 else 'larger'} than the scan: "
-            "they are in another unit (mm, cm, m?) or belong to another scan")
 
 
 def adapt_options(s, levels=-1):

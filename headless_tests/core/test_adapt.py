@@ -118,7 +118,7 @@ def test_bad_input_gets_a_clear_error(tpl, heads, case):
     v, t, clicks = head.scan_verts, head.scan_tris, dict(head.fdp_clicks)
     unit = head.similarity[0]
     expect = {"nan": "3.7", "unknown": "3.15", "missing": "10.9", "duplicate": "3.12",
-              "off_surface": "9.3", "another_unit": "times smaller than the clicks' spread: another unit",
+              "off_surface": "9.3", "another_unit": r"about 10\^3 times larger than the scan: they are in another unit",
               "empty": "scan", "quads": "scan"}[case]
     if case == "nan":
         clicks["3.7"] = np.array([np.nan, 0, 0])

@@ -232,7 +232,7 @@ def test_clicks_in_another_unit_exit_2_naming_the_landmark_file(tmp_path, inputs
     mm = tmp_path / "in" / "clicks_mm.json"
     mm.write_text(json.dumps({"points": {k: [1000 * c for c in p] for k, p in points.items()}}))
     line = one_error_line(batch("adapt", "--scan", scan, "--landmarks", mm, "--out", tmp_path / "out"))
-    assert line.startswith(f"headadapt: error: {mm}: FDP ") and "times smaller than the clicks' spread" in line, line
+    assert line.startswith(f"headadapt: error: {mm}: FDP ") and "about 10^3 times larger than the scan" in line, line
     assert json.loads((tmp_path / "out" / "report.json").read_text())["status"] == "failed"
 
 

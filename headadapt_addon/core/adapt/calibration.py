@@ -207,3 +207,17 @@ def validate_landmarks(points: dict, need: tuple = (), what: str = "scan") -> di
         raise LandmarkError(f"all {len(p)} FDPs on the {what} lie in one plane: calibration needs depth "
                             "(add the ears 10.9/10.10 or the nose tip 9.3)")
     return out
+
+
+def unit_hint(verts: np.ndarray, points: dict[str, np.ndarray]) -> str:
+    """A sentence naming a unit mismatch when the clicks' spread and the scan's size differ by more
+    than a factor of 5 (clicks span about 2/3 of a head scan), else ''. Any frame, both in the same."""
+    p = np.array(list(points.values()), dtype=float).reshape(-1, 3)
+    if len(p) < 2 or len(verts) == 0 or not np.isfinite(p).all():
+        return ""
+    ratio = float(np.ptp(verts, axis=0).max()) / max(float(np.ptp(p, axis=0).max()), 1e-300) / 1.5
+    if 0.2 < ratio < 5.0:
+        return ""
+    power = round(float(np.log10(ratio)))
+    return (f"the landmarks are about 10^{abs(power)} times {'smaller' if power > 0 else 'larger'} than the "
+            "scan: they are in another unit (mm, cm, m?) or belong to another scan")

@@ -219,20 +219,17 @@ def check_in_reach(verts: np.ndarray, q_fdp: dict[str, np.ndarray], options: Ada
     q = np.array([q_fdp[k] for k in names])
     lo, hi = verts.min(axis=0), verts.max(axis=0)
     dist = np.linalg.norm(np.maximum(lo - q, 0.0) + np.maximum(q - hi, 0.0), axis=1)
-    # a head is 1 to 5 times as wide as its clicks' spread: far outside that, name the unit
-    ratio = np.linalg.norm(hi - lo) / max(float(np.linalg.norm(np.ptp(q, axis=0))), 1e-300)
-    hint = ("" if 0.2 < ratio < 50 else f" (the scan is {max(ratio, 1 / ratio):.0f} times "
-            f"{'wider' if ratio > 1 else 'smaller'} than the clicks' spread: another unit?)")
-    _refuse_far(names, dist, "outside the scan's bounding box", options, hint)
+    _refuse_far(names, dist, "outside the scan's bounding box", options, calibration.unit_hint(verts, q_fdp))
 
 
 def _refuse_far(names: list[str], dist: np.ndarray, where: str, options: AdaptOptions, hint: str = "") -> None:
-    """LandmarkError naming the first FDP farther than options.off_surface_mm (ears: twice that)."""
+    """LandmarkError naming the first FDP farther than options.off_surface_mm (ears: twice that), with
+    the hint (calibration.unit_hint) if any."""
     for k, d in zip(names, dist):
         limit = options.off_surface_mm * (2 if k in ("3.5", "3.6") else 1)
         if d * MM > limit:
-            raise LandmarkError(f"FDP {k} ({mpeg4.FDPS[k].label}) is {d * MM:.1f} mm {where} after "
-                                f"calibration{hint}: landmarks must be picked on this scan (wrong file or unit?)")
+            raise LandmarkError(f"FDP {k} ({mpeg4.FDPS[k].label}) is {d * MM:.1f} mm {where} after calibration: "
+                                "landmarks must be picked on this scan (wrong file or unit?)" + (f"; {hint}" if hint else ""))
 
 
 class Unfolding:
