@@ -211,11 +211,13 @@ def validate_landmarks(points: dict, need: tuple = (), what: str = "scan") -> di
 
 def unit_hint(verts: np.ndarray, points: dict[str, np.ndarray]) -> str:
     """A sentence naming a unit mismatch when the clicks' spread and the scan's size differ by more
-    than a factor of 5 (clicks span about 2/3 of a head scan), else ''. Any frame, both in the same."""
+    than a factor of 5 (clicks span about 2/3 of a head scan), else ''. Any frame, both in the same;
+    verts: the scan's vertices, or its box's corners."""
     p = np.array(list(points.values()), dtype=float).reshape(-1, 3)
     if len(p) < 2 or len(verts) == 0 or not np.isfinite(p).all():
         return ""
-    ratio = float(np.ptp(verts, axis=0).max()) / max(float(np.ptp(p, axis=0).max()), 1e-300) / 1.5
+    v = np.asarray(verts, dtype=float).reshape(-1, 3)
+    ratio = float(np.ptp(v, axis=0).max()) / max(float(np.ptp(p, axis=0).max()), 1e-300) / 1.5
     if 0.2 < ratio < 5.0:
         return ""
     power = round(float(np.log10(ratio)))

@@ -217,19 +217,21 @@ def check_in_reach(verts: np.ndarray, q_fdp: dict[str, np.ndarray], options: Ada
     scan in metres) shrink the scan to a speck in the template's frame, which clustering would erase."""
     names = list(q_fdp)
     q = np.array([q_fdp[k] for k in names])
-    lo, hi = verts.min(axis=0), verts.max(axis=0)
+    lo, hi = geometry.bounds(verts)
     dist = np.linalg.norm(np.maximum(lo - q, 0.0) + np.maximum(q - hi, 0.0), axis=1)
-    _refuse_far(names, dist, "outside the scan's bounding box", options, calibration.unit_hint(verts, q_fdp))
+    _refuse_far(names, dist, "outside the scan's bounding box", options,
+                lambda: calibration.unit_hint(np.array([lo, hi]), q_fdp))
 
 
-def _refuse_far(names: list[str], dist: np.ndarray, where: str, options: AdaptOptions, hint: str = "") -> None:
+def _refuse_far(names: list[str], dist: np.ndarray, where: str, options: AdaptOptions, hint=None) -> None:
     """LandmarkError naming the first FDP farther than options.off_surface_mm (ears: twice that), with
-    the hint (calibration.unit_hint) if any."""
+    hint()'s sentence (calibration.unit_hint) if any."""
     for k, d in zip(names, dist):
         limit = options.off_surface_mm * (2 if k in ("3.5", "3.6") else 1)
         if d * MM > limit:
+            said = hint() if hint else ""
             raise LandmarkError(f"FDP {k} ({mpeg4.FDPS[k].label}) is {d * MM:.1f} mm {where} after calibration: "
-                                "landmarks must be picked on this scan (wrong file or unit?)" + (f"; {hint}" if hint else ""))
+                                "landmarks must be picked on this scan (wrong file or unit?)" + (f"; {said}" if said else ""))
 
 
 class Unfolding:

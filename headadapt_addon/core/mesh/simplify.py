@@ -76,7 +76,7 @@ def cluster(verts, tris, cell):
     used[tris.ravel()] = True
     every = used.all()                                    # (a scan's usual case: no masks to apply)
     inside = verts if every else verts[used]
-    lo = inside.min(axis=0)
+    lo = geometry.bounds(inside)[0]
     key = np.zeros(len(inside), np.int64)
     for k in range(3):
         g = ((inside[:, k] - lo[k]) * (1.0 / cell)).astype(np.int64)
