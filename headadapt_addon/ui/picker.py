@@ -2,7 +2,8 @@
 
 Click: place the selected FDP where the mouse ray hits the scan, then select the next missing one.
 Ctrl-click: remove the nearest FDP. M: place the selected FDP at its mirror suggestion.
-Right-click or Esc: finish. The placement logic lives in landmarks.py (tested headless).
+Right-click or Esc: finish. Clicks and keys over the sidebar, a header or another editor pass through
+to them. The placement logic lives in landmarks.py (tested headless).
 """
 
 import bpy
@@ -112,6 +113,21 @@ def mouse_ray(context, event):
     return np.array(origin), np.array(direction)
 
 
+def over_view(area, event):
+    """Whether the mouse (window coordinates) is over the 3D view itself: inside the area and not over
+    one of the regions drawn over the view (the sidebar, the toolbar, the headers, the last operator's
+    panel). A modal operator hears every click in the window first: a click meant for the sidebar's
+    FDP list would place the FDP behind it, and the list would never hear it."""
+    x, y = event.mouse_x, event.mouse_y
+
+    def inside(r):
+        return r.x <= x < r.x + r.width and r.y <= y < r.y + r.height
+
+    if area is None or not inside(area):
+        return False
+    return not any(r.type != "WINDOW" and r.width > 1 and r.height > 1 and inside(r) for r in area.regions)
+
+
 class HEADADAPT_OT_pick_landmarks(bpy.types.Operator):
     """Click FDPs on the scan: click places the selected FDP and moves to the next missing one, Ctrl-click removes, M mirrors, Esc ends"""
     bl_idname = "headadapt.pick_landmarks"
@@ -143,6 +159,8 @@ class HEADADAPT_OT_pick_landmarks(bpy.types.Operator):
             return self.finish(context)
         if event.type in {"MIDDLEMOUSE", "WHEELUPMOUSE", "WHEELDOWNMOUSE"} or event.type.startswith("NDOF"):
             return {"PASS_THROUGH"}
+        if event.type in {"LEFTMOUSE", "M"} and not over_view(context.area, event):
+            return {"PASS_THROUGH"}                 # the sidebar's FDP list, a header, another editor
         if event.type == "M" and event.value == "PRESS":
             pts = landmarks.get_landmarks(s.scan)
             guess = landmarks.mirror_suggestion(pts, s.active_fdp)

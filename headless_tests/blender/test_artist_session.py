@@ -717,13 +717,22 @@ def test_the_picker_places_a_point_from_stand_in_events(ui_scene):
         op = SimpleNamespace(report=lambda kind, text: reports.append((kind, text)))
         op.finish = lambda context: picker.HEADADAPT_OT_pick_landmarks.finish(op, context)
 
-        def event(kind, value="PRESS", ctrl=False):
-            e = SimpleNamespace(type=kind, value=value, ctrl=ctrl,
-                                mouse_region_x=int(round(xy.x)), mouse_region_y=int(round(xy.y)))
+        def event(kind, value="PRESS", ctrl=False, at=None):
+            x, y = (int(round(xy.x)), int(round(xy.y))) if at is None else at       # in the region
+            e = SimpleNamespace(type=kind, value=value, ctrl=ctrl, mouse_region_x=x, mouse_region_y=y,
+                                mouse_x=region.x + x, mouse_y=region.y + y)
             return picker.HEADADAPT_OT_pick_landmarks.modal(op, ctx, e)
 
         s.active_fdp = "9.3"
         assert event("WHEELUPMOUSE") == {"PASS_THROUGH"}
+        # a click on the toolbar or the header drawn over the view is theirs, not a pick behind them
+        tools = next(r for r in ui_scene["area"].regions if r.type == "TOOLS")
+        header = next(r for r in ui_scene["area"].regions if r.type == "HEADER")
+        for r in (tools, header):
+            assert r.width > 1 and r.height > 1
+            at = (r.x - region.x + r.width // 2, r.y - region.y + r.height // 2)
+            assert event("LEFTMOUSE", at=at) == {"PASS_THROUGH"} and event("M", at=at) == {"PASS_THROUGH"}
+        assert landmarks.get_landmarks(scan) == {}
         assert event("LEFTMOUSE") == {"RUNNING_MODAL"}
         placed = landmarks.get_landmarks(scan)
         assert list(placed) == ["9.3"]
@@ -735,6 +744,25 @@ def test_the_picker_places_a_point_from_stand_in_events(ui_scene):
         assert event("LEFTMOUSE", ctrl=True) == {"RUNNING_MODAL"}
         assert landmarks.get_landmarks(scan) == {} and reports[-1] == ({"INFO"}, "removed 9.3")
         assert event("ESC") == {"FINISHED"}
+
+
+def test_the_picker_leaves_the_sidebar_s_clicks_to_the_sidebar():
+    """over_view: the sidebar (drawn over the view, as Blender lays it out by default) and other editors
+    are not the view; a hidden sidebar (1 pixel wide) does not count."""
+    from types import SimpleNamespace as R
+
+    from headadapt_addon.ui import picker
+
+    view = R(type="WINDOW", x=0, y=0, width=1000, height=800)
+    sidebar = R(type="UI", x=700, y=0, width=300, height=774)
+    area = R(x=0, y=0, width=1000, height=800, regions=[view, sidebar])
+
+    def at(x, y):
+        return picker.over_view(area, R(mouse_x=x, mouse_y=y))
+
+    assert at(400, 400) and not at(800, 400) and not at(1200, 400) and not at(400, -5)
+    sidebar.width = 1
+    assert at(800, 400)
 
 
 def test_landmarking_guides_the_8_clicks_first_and_suggestions_one_by_one(ui_scene):
