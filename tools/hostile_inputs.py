@@ -5,7 +5,7 @@
 Scans (truncated, huge or negative counts, NaN, non-UTF-8, 0-byte, a Blender-exported binary PLY of
 quads and triangles, truncated), landmark files (NaN, deep JSON, XML entity bombs, non-UTF-8, 0-byte)
 landmark files that read but do not fit the scan (another unit, another scan's, too few, one spot
-clicked twice) and .fap files (an 18-byte file declaring 10^8 frames, huge numbers). Each hostile file goes through
+clicked twice, a typed 1e300) and .fap files (an 18-byte file declaring 10^8 frames, huge numbers). Each hostile file goes through
 ``batch adapt`` (a .fap through read_fap, as Import .fap calls it) in its own process: it must exit 2
 with one stderr line naming the file, within 5 s and 1 GB peak resident memory; each valid scan
 must adapt (exit 0 or 3). Then folder mode over good, corrupt and hanging scans must finish the good
@@ -76,6 +76,8 @@ def clicks_that_do_not_fit(scan_verts: np.ndarray) -> dict[str, tuple[bytes, str
         "clicks_elsewhere.json": (dump({k: x + 2 * size for k, x in p.items()}), "another scan's clicks, 2 scans away"),
         "clicks_3.json": (dump({k: p[k] for k in names[:3]}), "3 clicks"),
         "clicked_twice.json": (dump({**p, names[1]: p[names[0]]}), "two FDPs at one spot"),
+        "clicks_typo.json": (dump({**p, names[2]: np.array([1e300, 0.0, 0.0])}), "one coordinate typed 1e300"),
+        "clicks_1e150x.json": (dump({k: 1e150 * x for k, x in p.items()}), "the clicks 1e150 times the scan"),
     }
 
 

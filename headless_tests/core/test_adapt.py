@@ -111,14 +111,16 @@ def test_wrong_click_is_named_and_dropped(tpl, heads):
     assert len(res.flagged) <= 2
 
 
-@pytest.mark.parametrize("case", ["nan", "unknown", "missing", "duplicate", "off_surface", "another_unit", "empty",
-                                  "quads"])
+@pytest.mark.parametrize("case", ["nan", "unknown", "missing", "duplicate", "off_surface", "another_unit",
+                                  "absurd_unit", "typo", "empty", "quads"])
 def test_bad_input_gets_a_clear_error(tpl, heads, case):
     head = heads[0]
     v, t, clicks = head.scan_verts, head.scan_tris, dict(head.fdp_clicks)
     unit = head.similarity[0]
     expect = {"nan": "3.7", "unknown": "3.15", "missing": "10.9", "duplicate": "3.12",
               "off_surface": "9.3", "another_unit": r"about 10\^3 times larger than the scan: they are in another unit",
+              "absurd_unit": r"about 10\^150 times larger than the scan",
+              "typo": r"FDP 3\.8 \(.*\) on the scan lies .* farther from the clicks' middle than the others do",
               "empty": "scan", "quads": "scan"}[case]
     if case == "nan":
         clicks["3.7"] = np.array([np.nan, 0, 0])
@@ -135,6 +137,10 @@ def test_bad_input_gets_a_clear_error(tpl, heads, case):
         clicks["9.3"] = clicks["9.3"] + np.array([0.0, -60e-3, 0.0]) * unit
     elif case == "another_unit":         # millimetres clicked on a scan in metres
         clicks = {k: 1000 * p for k, p in clicks.items()}
+    elif case == "absurd_unit":          # the scan lost to rounding in the template's frame: no overflow
+        clicks = {k: 1e150 * p for k, p in clicks.items()}
+    elif case == "typo":                 # one coordinate typed 1e300: not "two clicks at one spot"
+        clicks["3.8"] = np.array([1e300, 0.0, 0.0])
     elif case == "empty":
         v, t = np.zeros((0, 3)), np.zeros((0, 3), int)
     elif case == "quads":

@@ -15,6 +15,7 @@ from .. import mpeg4
 from ..exceptions import LandmarkError
 
 MIN_FDPS = 4
+FAR_FACTOR = 20.0    # a click this many times the clicks' median distance from their middle is a slip
 
 
 @dataclasses.dataclass(frozen=True)
@@ -190,6 +191,17 @@ def validate_landmarks(points: dict, need: tuple = (), what: str = "scan") -> di
                             f"at least {MIN_FDPS}, best the paper's 8: {', '.join(mpeg4.CALIBRATION_FDPS)}")
     names = list(out)
     p = np.array([out[k] for k in names])
+    # one point far from all the others (a typed coordinate, another scan's click) would make the rest
+    # look like one spot: a head's clicks lie within a few times their median distance from their middle
+    with np.errstate(over="ignore", invalid="ignore"):          # a coordinate of 1e300: inf, said below
+        far = np.linalg.norm(p - np.median(p, axis=0), axis=1)
+    typical = float(np.median(far))
+    k = int(np.argmax(far))
+    if typical > 0 and far[k] > FAR_FACTOR * typical:
+        times = f"{far[k] / typical:.3g} times" if np.isfinite(far[k]) else "immeasurably"
+        raise LandmarkError(f"FDP {names[k]} ({mpeg4.FDPS[names[k]].label}) on the {what} lies {times} farther "
+                            "from the clicks' middle than the others do: a slip in its coordinates, or another "
+                            "scan's point")
     spread = float(np.ptp(p, axis=0).max())
     d = np.linalg.norm(p[:, None] - p[None], axis=2)
     d[np.tril_indices(len(p))] = np.inf
@@ -220,6 +232,6 @@ def unit_hint(verts: np.ndarray, points: dict[str, np.ndarray]) -> str:
     ratio = float(np.ptp(v, axis=0).max()) / max(float(np.ptp(p, axis=0).max()), 1e-300) / 1.5
     if 0.2 < ratio < 5.0:
         return ""
-    power = round(float(np.log10(ratio)))
+    power = round(float(np.log10(np.clip(ratio, 1e-300, 1e300))))
     return (f"the landmarks are about 10^{abs(power)} times {'smaller' if power > 0 else 'larger'} than the "
             "scan: they are in another unit (mm, cm, m?) or belong to another scan")

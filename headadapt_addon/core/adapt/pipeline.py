@@ -164,7 +164,7 @@ def calibrate(tpl: Template, scan_verts: np.ndarray, scan_tris: np.ndarray, scan
     sim, info = calibration.calibrate(given, tpl_fdps, method=options.calibration)
     sv = sim.apply(scan_verts)
     q_fdp = {k: sim.apply(v) for k, v in given.items()}
-    check_in_reach(sv, q_fdp, options)
+    check_in_reach(sv, q_fdp, options, hint=lambda: calibration.unit_hint(np.array(geometry.bounds(scan_verts)), given))
     # a dense scan is clustered once to the detail the fit can use (mesh/simplify.py)
     border, clustered = None, simplify.cluster_if_finer(sv, scan_tris, options.scan_cell)
     if clustered is not None:
@@ -211,16 +211,17 @@ def check_on_surface(scan: ScanSide, q_fdp: dict[str, np.ndarray], options: Adap
     _refuse_far(names, dist, "from the scan surface", options)
 
 
-def check_in_reach(verts: np.ndarray, q_fdp: dict[str, np.ndarray], options: AdaptOptions) -> None:
+def check_in_reach(verts: np.ndarray, q_fdp: dict[str, np.ndarray], options: AdaptOptions, hint=None) -> None:
     """check_on_surface's test against the scan's bounding box, before the scan is prepared (no point
     of the box is farther than the surface): clicks in another unit than the scan (millimetres on a
-    scan in metres) shrink the scan to a speck in the template's frame, which clustering would erase."""
+    scan in metres) shrink the scan to a speck in the template's frame, which clustering would erase.
+    hint(): a sentence for the error (calibration.unit_hint in the file's frame: in the template's a
+    speck's size is lost to rounding)."""
     names = list(q_fdp)
     q = np.array([q_fdp[k] for k in names])
     lo, hi = geometry.bounds(verts)
     dist = np.linalg.norm(np.maximum(lo - q, 0.0) + np.maximum(q - hi, 0.0), axis=1)
-    _refuse_far(names, dist, "outside the scan's bounding box", options,
-                lambda: calibration.unit_hint(np.array([lo, hi]), q_fdp))
+    _refuse_far(names, dist, "outside the scan's bounding box", options, hint)
 
 
 def _refuse_far(names: list[str], dist: np.ndarray, where: str, options: AdaptOptions, hint=None) -> None:
@@ -230,7 +231,7 @@ def _refuse_far(names: list[str], dist: np.ndarray, where: str, options: AdaptOp
         limit = options.off_surface_mm * (2 if k in ("3.5", "3.6") else 1)
         if d * MM > limit:
             said = hint() if hint else ""
-            raise LandmarkError(f"FDP {k} ({mpeg4.FDPS[k].label}) is {d * MM:.1f} mm {where} after calibration: "
+            raise LandmarkError(f"FDP {k} ({mpeg4.FDPS[k].label}) is {d * MM:.{'1f' if d * MM < 1e6 else '3g'}} mm {where} after calibration: "
                                 "landmarks must be picked on this scan (wrong file or unit?)" + (f"; {said}" if said else ""))
 
 
