@@ -26,6 +26,7 @@ import numpy as np
 
 from . import limits
 from .exceptions import FileFormatError
+from .mesh import geometry
 
 # A PLY header longer than this is not a header (plyfile reads it one character at a time).
 _PLY_HEADER_MAX_BYTES = 64 * 1024
@@ -215,16 +216,6 @@ def _read_stl(path: pathlib.Path) -> tuple[np.ndarray, np.ndarray, bool]:
 # ---------------------------------------------------------------------------------------------
 # HeadAdapt's checks
 # ---------------------------------------------------------------------------------------------
-def weld(verts: np.ndarray, tris: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Merge vertices at exactly the same coordinates, keeping the first of each in file order."""
-    key = np.ascontiguousarray(verts).view(np.dtype((np.void, verts.dtype.itemsize * 3))).ravel()
-    _, first, inverse = np.unique(key, return_index=True, return_inverse=True)
-    order = np.argsort(first)
-    rank = np.empty_like(order)
-    rank[order] = np.arange(len(order))
-    return verts[first[order]], rank[inverse.ravel()][tris]
-
-
 def _checked(path: pathlib.Path, verts: np.ndarray, tris: np.ndarray, weld_corners: bool):
     n = len(verts)
     if n == 0:
@@ -242,5 +233,5 @@ def _checked(path: pathlib.Path, verts: np.ndarray, tris: np.ndarray, weld_corne
         raise FileFormatError(f"{path}: face {out[0] + 1} refers to a vertex that does not exist "
                               f"({tris[out[0]].tolist()}, the file has {n} vertices)")
     if weld_corners:
-        verts, tris = weld(verts, tris)
+        verts, tris = geometry.weld(verts, tris)
     return np.ascontiguousarray(verts, dtype=np.float64), np.ascontiguousarray(tris, dtype=np.int64)

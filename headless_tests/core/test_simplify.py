@@ -91,6 +91,26 @@ def test_a_piece_kilometres_away_is_clustered_as_one_nearby():
     assert np.array_equal(near[0][head], far[0][head]) and len(np.unique(near[1][-1])) == 3
 
 
+def test_a_triangle_soup_is_welded_and_fits_as_the_mesh_it_came_from(tpl):
+    """The sample written with every triangle's own corners (some exporters do): before, every edge
+    was a hole's border, the fit kept 7 seen vertices and ended at level 0, 'not trustworthy'."""
+    from headadapt_addon.batch import SAMPLE_DIR
+    from headadapt_addon.core import meshio
+
+    v, t = meshio.read_mesh(SAMPLE_DIR / "scan.ply")
+    clicks = meshio.read_landmarks(SAMPLE_DIR / "landmarks.json")
+    soup_v, soup_t = v[t].reshape(-1, 3), np.arange(3 * len(t)).reshape(-1, 3)
+    welded_v, welded_t = simplify.weld_if_soup(soup_v, soup_t)
+    assert len(welded_v) == len(np.unique(v[np.unique(t)], axis=0)) and len(welded_t) == len(t)
+    assert simplify.weld_if_soup(v, t) is None                           # a mesh is left as it is
+    options = AdaptOptions(max_levels=2)
+    soup, mesh = adapt(tpl, soup_v, soup_t, clicks, options), adapt(tpl, v, t, clicks, options)
+    assert soup.calibration_info["scan_welded"] == {"vertices": len(soup_v), "kept": len(welded_v)}
+    assert soup.outcome["ok"] and soup.best_level == mesh.best_level
+    assert abs(soup.outcome["seen_vertices"] - mesh.outcome["seen_vertices"]) < 0.01 * mesh.outcome["seen_vertices"]
+    assert abs(soup.outcome["seen_rms_mm"] - mesh.outcome["seen_rms_mm"]) < 0.02
+
+
 @pytest.mark.slow
 def test_a_dense_scan_is_clustered_and_fits_as_well(tpl, testheads):
     """A scan-like head remeshed finer (196k vertices, 0.96 mm median edge in the template frame) is

@@ -162,6 +162,10 @@ def calibrate(tpl: Template, scan_verts: np.ndarray, scan_tris: np.ndarray, scan
     given = {k: v for k, v in given.items() if k in tpl_fdps}
     given, handed = calibration.check_handedness(given, tpl_fdps)
     sim, info = calibration.calibrate(given, tpl_fdps, method=options.calibration)
+    welded = simplify.weld_if_soup(scan_verts, scan_tris)        # a triangle soup's corners welded
+    if welded is not None:
+        info = {**info, "scan_welded": {"vertices": len(scan_verts), "kept": len(welded[0])}}
+        scan_verts, scan_tris = welded
     sv = sim.apply(scan_verts)
     q_fdp = {k: sim.apply(v) for k, v in given.items()}
     check_in_reach(sv, q_fdp, options, hint=lambda: calibration.unit_hint(np.array(geometry.bounds(scan_verts)), given))

@@ -34,6 +34,18 @@ def face_cross(v, t):
     return cross(v[t[:, 1]] - a, v[t[:, 2]] - a)
 
 
+def weld(verts, tris):
+    """(verts, tris) with the vertices at exactly the same coordinates merged, keeping the first of each
+    in the given order."""
+    verts = np.ascontiguousarray(verts)
+    key = verts.view(np.dtype((np.void, verts.dtype.itemsize * 3))).ravel()
+    _, first, inverse = np.unique(key, return_index=True, return_inverse=True)
+    order = np.argsort(first)
+    rank = np.empty_like(order)
+    rank[order] = np.arange(len(order))
+    return verts[first[order]], rank[inverse.ravel()][tris]
+
+
 def face_areas(v, t):
     """Area of every triangle (k,), in the verts' unit squared."""
     return 0.5 * np.linalg.norm(face_cross(v, t), axis=1)

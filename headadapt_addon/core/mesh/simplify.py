@@ -55,6 +55,18 @@ def unique_inverse(key):
     return int(rank[-1]) + 1, inv
 
 
+SOUP = 1.5          # more vertices than this x triangles: a triangle soup (a mesh has about half as many)
+
+
+def weld_if_soup(verts, tris):
+    """geometry.weld(verts, tris) when the mesh has over SOUP vertices a triangle (each triangle with its
+    own corners, as some exporters write a mesh), else None: a soup shows every edge as a hole's
+    border, and the fit keeps no pair by a border."""
+    if len(verts) > SOUP * len(tris):
+        return geometry.weld(np.asarray(verts), np.asarray(tris))
+    return None
+
+
 def cluster_if_finer(verts, tris, cell):
     """cluster(verts, tris, cell) when the mesh's median edge is under `cell` (0: never), else None."""
     if cell and len(tris) and median_edge(verts, tris) < cell:
