@@ -99,9 +99,11 @@ def _read_ply(path: pathlib.Path) -> tuple[np.ndarray, np.ndarray, bool]:
         header = _ply_header(path, fh)
         if "vertex" not in header or not {"x", "y", "z"} <= {p.name for p in header["vertex"].properties}:
             raise FileFormatError(f"{path}: no 'vertex' element with x, y, z properties")
-        # Triangles first: their lists memory-map in one step; plyfile says so if a length differs
-        # (quads, Blender's mixed export), then it reads the lists row by row.
-        triangles = {el.name: {p.name: 3 for p in el.properties if isinstance(p, plyfile.PlyListProperty)}
+        # Triangles first: their lists memory-map in one step (a textured scan's per-face texcoord: two
+        # numbers a corner); plyfile says so if a length differs (quads, Blender's mixed export), then
+        # it reads the lists row by row (a 65k-triangle textured scan: 0.9 s instead of 0.05).
+        triangles = {el.name: {p.name: 6 if "texcoord" in p.name.lower() else 3
+                               for p in el.properties if isinstance(p, plyfile.PlyListProperty)}
                      for el in header.elements}
         try:
             try:
