@@ -203,4 +203,5 @@ def run():
     return None
 
 
-bpy.app.timers.register(run, first_interval=2.0)
+if __name__ == "__main__":            # blender --python tools/screenshots.py (importable for its helpers)
+    bpy.app.timers.register(run, first_interval=2.0)

@@ -63,3 +63,23 @@ def test_bad_input_in_a_blender_binary_exits_2_with_one_line(tmp_path):
                 "--out", str(tmp_path / "o"), cwd=tmp_path)
     assert proc.returncode == 2
     assert "missing.ply: no such file" in proc.stderr and "Traceback" not in proc.stderr
+
+
+@pytest.mark.skipif(shutil.which("xvfb-run") is None, reason="no xvfb-run for a real Blender window")
+def test_the_picker_in_a_real_window_leaves_a_click_on_the_sidebar_to_the_sidebar(tmp_path):
+    """Blender's window under Xvfb, events simulated: a click over the sidebar, with the scan behind
+    it, places no FDP (before, the modal picker took it and placed the active FDP behind the
+    sidebar); a click over the scan in the open view places one."""
+    env = {k: v for k, v in os.environ.items() if k != "OCIO"}
+    env["PLYFILE_TRIMESH"] = str(_readers_path(tmp_path / "readers"))
+    start = tmp_path / "start.blend"
+    subprocess.run([BLENDER, "-b", "--factory-startup", "--python-expr",
+                    f"import bpy; bpy.ops.wm.save_as_mainfile(filepath={str(start)!r})"],
+                   capture_output=True, env=env, timeout=300, check=True)
+    proc = subprocess.run(["xvfb-run", "-a", "-s", "-screen 0 1600x1000x24", BLENDER, "--factory-startup",
+                           "--enable-event-simulate", str(start), "--python",
+                           str(ROOT / "headless_tests" / "blender" / "gui_picker.py")],
+                          capture_output=True, text=True, env=env, cwd=tmp_path, timeout=300)
+    line = next((s for s in proc.stdout.splitlines() if s.startswith("gui_picker: RESULT")), None)
+    assert line is not None, proc.stdout[-3000:] + proc.stderr[-3000:]
+    assert line.endswith("{'sidebar': 0, 'view': 1}"), line
