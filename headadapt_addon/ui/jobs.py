@@ -59,11 +59,40 @@ class Job:
         return self.done
 
 
+_RUNNING = []          # the Runs started from a button and not yet ended (one at a time: busy())
+
+
+def busy():
+    """What a long operator started from a button is doing now ('Adapt', 'Bake'), or '' if none."""
+    return _RUNNING[0].what if _RUNNING else ""
+
+
+def drop_all():
+    """Cancel every running job and forget them (another file loaded, the add-on unregistered: their
+    modal operators are gone, and nothing would end them)."""
+    for run in _RUNNING:
+        run.job.cancel()
+    _RUNNING.clear()
+
+
+def alive(*ids):
+    """Whether every Blender ID given is still there (not removed, not replaced by an undo)."""
+    try:
+        return all(data.name is not None for data in ids)
+    except ReferenceError:
+        return False
+
+
 class Run:
     """A long operator's run (a subclass gives work and job, and finish): self.work(say) (numpy only) on a Job, self.finish(context, value, report)
     in the main thread when it is done. The modal operator feeds it its events (step); Esc cancels
-    and leaves the scene as it was (nothing is written to the scene before finish)."""
+    and leaves the scene as it was (nothing is written to the scene before finish). A run whose
+    objects (self.needs()) were removed while it ran (deleted, or undone) writes nothing and says so."""
     what = "the work"
+
+    def needs(self):
+        """The Blender IDs finish writes to or reads from."""
+        return ()
 
     def step(self, context, event_type, report):
         """Handle one event: ESC cancels, TIMER shows progress and finishes when the job is done;
@@ -84,6 +113,11 @@ class Run:
                 report({"ERROR"}, str(self.job.error))
                 return {"CANCELLED"}
             raise self.job.error
+        if not alive(*self.needs()):
+            self.end(context)
+            report({"ERROR"}, f"{self.what}: an object it works on was removed while it ran (deleted or undone); "
+                              "nothing was written")
+            return {"CANCELLED"}
         try:
             return self.finish(context, self.job.value, report)
         finally:
@@ -104,6 +138,8 @@ class Run:
             self.end(context)
 
     def end(self, context):
+        if self in _RUNNING:
+            _RUNNING.remove(self)
         context.window_manager.progress_end()
         context.scene.headadapt.progress_text = ""
         if context.workspace is not None:
@@ -125,6 +161,7 @@ class Modal:
         wm.progress_begin(0, 100)
         self._timer = wm.event_timer_add(0.25, window=context.window)
         wm.modal_handler_add(self)
+        _RUNNING.append(run)
         run.job.start()
         return {"RUNNING_MODAL"}
 

@@ -87,6 +87,8 @@ def calibration_ready(context):
 
 def poll_with_message(cls, problem):
     """poll()'s answer: True without a problem, else False with the problem as the greyed button's tooltip."""
+    if not problem and jobs.busy() and getattr(cls, "long_run", False):
+        problem = f"{jobs.busy()} is running: wait for it, or press Esc to cancel it"
     if problem:
         cls.poll_message_set(problem[:1].upper() + problem[1:])
         return False
@@ -463,6 +465,9 @@ class AdaptRun(Run):
         self.work = work
         self.job = Job(work)
 
+    def needs(self):
+        return (self.scan,)
+
     def finish(self, context, value, report):
         """Build the result objects (replacing the last result unless kept), store the report, say how it went."""
         import time
@@ -515,6 +520,9 @@ class BakeRun(Run):
         self.work = work
         self.job = Job(work)
 
+    def needs(self):
+        return (self.root,)
+
     def finish(self, context, value, report):
         from ..blender import blendout
         jobs.show_progress(context, 1.0, "writing the shape keys")
@@ -529,6 +537,7 @@ class HEADADAPT_OT_adapt(Modal, _Base, bpy.types.Operator):
     """Adapt the template onto the scan level by level (Esc cancels); the result replaces the previous one (or is kept beside it)"""
     bl_idname = "headadapt.adapt"
     bl_label = "Adapt"
+    long_run = True                  # greyed while an Adapt or a Bake runs (jobs.busy)
     levels: bpy.props.IntProperty(name="Levels", default=-1, min=-1, max=8,
                                   description="Levels after level 0 (-1: the scene setting)")
 
@@ -544,6 +553,7 @@ class HEADADAPT_OT_bake_expressions(Modal, _Base, bpy.types.Operator):
     """Simulate the skin for the chosen sets and bake them to shape keys, with a preview action (Esc cancels)"""
     bl_idname = "headadapt.bake_expressions"
     bl_label = "Bake Expressions"
+    long_run = True
     sets: bpy.props.EnumProperty(
         name="Sets", options={"ENUM_FLAG"}, default={"expression", "viseme", "fap", "arkit"},
         items=[("expression", "Expressions", "joy, sadness, anger, fear, disgust, surprise"),
@@ -557,7 +567,7 @@ class HEADADAPT_OT_bake_expressions(Modal, _Base, bpy.types.Operator):
     def poll(cls, context):
         if head_root(context) is None:
             return poll_with_message(cls, "no head in the scene: add the template or adapt first")
-        return True
+        return poll_with_message(cls, "")
 
     def make_run(self, context):
         root = head_root(context)
@@ -637,8 +647,10 @@ _register_classes, _unregister_classes = bpy.utils.register_classes_factory(clas
 
 @bpy.app.handlers.persistent
 def _forget_kept(*_args):
-    """Another file loaded: its scans are others (and the memory is freed)."""
+    """Another file loaded: its scans are others (and the memory is freed); a running Adapt or Bake,
+    whose operator the load ended, is cancelled (else its buttons would stay greyed)."""
     kept.forget()
+    jobs.drop_all()
 
 
 def register():
@@ -650,4 +662,5 @@ def unregister():
     if _forget_kept in bpy.app.handlers.load_post:
         bpy.app.handlers.load_post.remove(_forget_kept)
     kept.forget()
+    jobs.drop_all()
     _unregister_classes()

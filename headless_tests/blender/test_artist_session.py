@@ -343,6 +343,54 @@ def test_adapt_from_a_button_works_on_a_thread_and_esc_leaves_the_scene_as_it_wa
         assert reports[-1][0] == {"INFO"} and reports[-1][1].startswith("adapted: best level")
 
 
+def test_a_running_adapt_greys_adapt_and_bake_and_a_scan_removed_meanwhile_changes_nothing(ui_scene):
+    """Pressed twice, Adapt ran twice at once; Bake could start beside it. Now both are greyed while
+    one runs, and again usable once it ends or another file is loaded (its operator gone). A scan
+    deleted (or undone) while Adapt runs: before, a ReferenceError traceback after the previous
+    result had been removed; now an error report and the scene as it was."""
+    import time
+    from types import SimpleNamespace
+
+    import bpy
+
+    from headadapt_addon.blender import landmarks
+    from headadapt_addon.ui import jobs, operators
+
+    with bpy.context.temp_override(**ui_scene):
+        ctx, s = bpy.context, bpy.context.scene.headadapt
+        assert bpy.ops.headadapt.add_template() == {"FINISHED"}          # a head: Bake is usable
+        scan = _sample_scan()
+        landmarks.set_landmarks(scan, meshio.read_landmarks(SAMPLE_DIR / "landmarks.json"))
+        assert bpy.ops.headadapt.adapt.poll() and bpy.ops.headadapt.bake_expressions.poll()
+        # a button's start, as Modal.invoke makes it (headless, bpy.ops runs execute: waited for; the
+        # real window's invoke is test_blender_binary's)
+        started = operators.AdaptRun(ctx, 1)
+        jobs._RUNNING.append(started)
+        started.job.start()
+        assert jobs.busy() == "Adapt"
+        assert not bpy.ops.headadapt.adapt.poll() and not bpy.ops.headadapt.bake_expressions.poll()
+        assert bpy.ops.headadapt.calibrate.poll()                          # a quick button stays
+        running = list(jobs._RUNNING)
+        operators._forget_kept()                                           # as loading a file does
+        assert jobs.busy() == "" and bpy.ops.headadapt.adapt.poll()
+        assert running[0].job.wait(60) and isinstance(running[0].job.error, jobs.Cancelled)
+        # a scan removed while the run works: nothing written, said so
+        before = sorted(o.name for o in bpy.data.objects)
+        reports = []
+        run = operators.AdaptRun(ctx, 1)
+        op = SimpleNamespace(_run=run, _timer=ctx.window_manager.event_timer_add(0.25, window=ctx.window),
+                             report=lambda kind, text: reports.append((kind, text)))
+        run.job.start()
+        bpy.data.objects.remove(scan)
+        deadline = time.time() + 120
+        while (answer := operators.HEADADAPT_OT_adapt.modal(op, ctx, SimpleNamespace(type="TIMER"))) == {"RUNNING_MODAL"} \
+                and time.time() < deadline:
+            time.sleep(0.05)
+        assert answer == {"CANCELLED"} and reports[-1][0] == {"ERROR"} and "removed while it ran" in reports[-1][1]
+        assert sorted(o.name for o in bpy.data.objects) == sorted(n for n in before if n != "scan")
+        assert s.result_root is None and s.progress_text == ""
+
+
 @pytest.mark.slow
 def test_bake_reports_progress_and_esc_leaves_no_shape_keys(ui_scene, monkeypatch):
     import time

@@ -65,11 +65,9 @@ def test_bad_input_in_a_blender_binary_exits_2_with_one_line(tmp_path):
     assert "missing.ply: no such file" in proc.stderr and "Traceback" not in proc.stderr
 
 
-@pytest.mark.skipif(shutil.which("xvfb-run") is None, reason="no xvfb-run for a real Blender window")
-def test_the_picker_in_a_real_window_leaves_a_click_on_the_sidebar_to_the_sidebar(tmp_path):
-    """Blender's window under Xvfb, events simulated: a click over the sidebar, with the scan behind
-    it, places no FDP (before, the modal picker took it and placed the active FDP behind the
-    sidebar); a click over the scan in the open view places one."""
+def _in_a_window(script, tmp_path):
+    """The RESULT line a script (headless_tests/blender/SCRIPT) prints from Debian's Blender in a real
+    window under Xvfb, with event simulation (the sample's readers on its path)."""
     env = {k: v for k, v in os.environ.items() if k != "OCIO"}
     env["PLYFILE_TRIMESH"] = str(_readers_path(tmp_path / "readers"))
     start = tmp_path / "start.blend"
@@ -78,8 +76,28 @@ def test_the_picker_in_a_real_window_leaves_a_click_on_the_sidebar_to_the_sideba
                    capture_output=True, env=env, timeout=300, check=True)
     proc = subprocess.run(["xvfb-run", "-a", "-s", "-screen 0 1600x1000x24", BLENDER, "--factory-startup",
                            "--enable-event-simulate", str(start), "--python",
-                           str(ROOT / "headless_tests" / "blender" / "gui_picker.py")],
+                           str(ROOT / "headless_tests" / "blender" / script)],
                           capture_output=True, text=True, env=env, cwd=tmp_path, timeout=300)
-    line = next((s for s in proc.stdout.splitlines() if s.startswith("gui_picker: RESULT")), None)
+    tag = f"{script.removesuffix('.py')}: RESULT "
+    line = next((s for s in proc.stdout.splitlines() if s.startswith(tag)), None)
     assert line is not None, proc.stdout[-3000:] + proc.stderr[-3000:]
-    assert line.endswith("{'sidebar': 0, 'view': 1}"), line
+    return line.removeprefix(tag)
+
+
+@pytest.mark.skipif(shutil.which("xvfb-run") is None, reason="no xvfb-run for a real Blender window")
+def test_the_picker_in_a_real_window_leaves_a_click_on_the_sidebar_to_the_sidebar(tmp_path):
+    """Blender's window under Xvfb, events simulated: a click over the sidebar, with the scan behind
+    it, places no FDP (before, the modal picker took it and placed the active FDP behind the
+    sidebar); a click over the scan in the open view places one."""
+    assert _in_a_window("gui_picker.py", tmp_path) == "{'sidebar': 0, 'view': 1}"
+
+
+@pytest.mark.skipif(shutil.which("xvfb-run") is None, reason="no xvfb-run for a real Blender window")
+def test_adapt_pressed_twice_in_a_real_window_runs_once(tmp_path):
+    """The button's own path (invoke: a worker thread and a timer): pressed again while it runs, Adapt
+    is refused with the reason (before, a second run started beside the first); one result; usable
+    again when done."""
+    result = eval(_in_a_window("gui_adapt.py", tmp_path))
+    assert result["first"] == ["RUNNING_MODAL"], result
+    assert result["second"] == "refused: Adapt is running: wait for it, or press Esc to cancel it", result
+    assert result["results"] == 1 and result["usable_again"], result
