@@ -150,7 +150,8 @@ class HEADADAPT_OT_pick_landmarks(bpy.types.Operator):
 
     def finish(self, context):
         context.workspace.status_text_set(None)
-        context.area.tag_redraw()
+        if context.area is not None:            # (Esc pressed after the view's area was closed)
+            context.area.tag_redraw()
         return {"FINISHED"}
 
     def modal(self, context, event):
