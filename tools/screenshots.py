@@ -192,16 +192,28 @@ def scroll_sidebar():
 STEPS = [setup, tab, redraw, redraw, shot("landmarks.png"), clicks8, redraw, shot("panels.png"), adapt, scroll_sidebar, shot("heat_map.png")]
 
 
-def run():
-    try:
-        if STEPS:
-            return STEPS.pop(0)()
-    except Exception:
-        traceback.print_exc()
-        STEPS.clear()
-    bpy.ops.wm.quit_blender()
-    return None
+def play(steps, first_interval=2.0):
+    """Run steps one after another from Blender's timers, then quit Blender (also after a step fails,
+    its traceback printed). A step returns the seconds to wait before the next, or ("again", seconds)
+    to be run again after them (waiting for something)."""
+    steps = list(steps)
+
+    def run():
+        try:
+            if steps:
+                answer = steps[0]()
+                if isinstance(answer, tuple):
+                    return answer[1]
+                steps.pop(0)
+                return answer
+        except Exception:
+            traceback.print_exc()
+            steps.clear()
+        bpy.ops.wm.quit_blender()
+        return None
+
+    bpy.app.timers.register(run, first_interval=first_interval)
 
 
 if __name__ == "__main__":            # blender --python tools/screenshots.py (importable for its helpers)
-    bpy.app.timers.register(run, first_interval=2.0)
+    play(STEPS)

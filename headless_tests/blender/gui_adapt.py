@@ -5,7 +5,6 @@ second press was refused while the first ran, the results made, and whether Adap
 """
 import pathlib
 import sys
-import traceback
 
 import bpy
 
@@ -29,30 +28,13 @@ def press():
 def wait():
     from headadapt_addon.ui import jobs
     if jobs.busy():
-        return 0.5
+        return ("again", 0.5)
     roots = [o for o in bpy.data.objects if o.parent is None and o.name.endswith("adapted")]
     RESULT["results"] = len(roots)
     with bpy.context.temp_override(**shots._override()):
         RESULT["usable_again"] = bool(bpy.ops.headadapt.adapt.poll())
     print("gui_adapt: RESULT", RESULT, flush=True)
-    bpy.ops.wm.quit_blender()
-    return None
+    return 0.1
 
 
-STEPS = [shots.setup, shots.redraw, shots.clicks8, press, wait]
-
-
-def run():
-    try:
-        if STEPS:
-            answer = STEPS[0]()
-            if STEPS[0] is not wait or answer is None:
-                STEPS.pop(0)
-            return answer
-    except Exception:
-        traceback.print_exc()
-        bpy.ops.wm.quit_blender()
-    return None
-
-
-bpy.app.timers.register(run, first_interval=1.0)
+shots.play([shots.setup, shots.redraw, shots.clicks8, press, wait], first_interval=1.0)

@@ -9,7 +9,6 @@ Prints "gui_picker: RESULT {...}": the FDPs each click placed (the sidebar's mus
 """
 import pathlib
 import sys
-import traceback
 
 import bpy
 from bpy_extras import view3d_utils
@@ -75,21 +74,8 @@ def count(where):
 
 def end():
     print("gui_picker: RESULT", RESULT, flush=True)
-    bpy.ops.wm.quit_blender()
+    return 0.1
 
 
-STEPS = [shots.setup, shots.tab, shots.redraw, frame, shots.redraw, start,
-         click("sidebar"), count("sidebar"), click("view"), count("view"), end]
-
-
-def run():
-    try:
-        if STEPS:
-            return STEPS.pop(0)()
-    except Exception:
-        traceback.print_exc()
-        bpy.ops.wm.quit_blender()
-    return None
-
-
-bpy.app.timers.register(run, first_interval=1.0)
+shots.play([shots.setup, shots.tab, shots.redraw, frame, shots.redraw, start,
+            click("sidebar"), count("sidebar"), click("view"), count("view"), end], first_interval=1.0)
