@@ -89,6 +89,9 @@ def read_landmark_file(path: str | os.PathLike) -> tuple[dict[str, np.ndarray], 
     points) are returned as the meta dict.
     """
     path = pathlib.Path(path)
+    if path.suffix.lower() in (".ply", ".obj", ".stl"):
+        raise FileFormatError(f"{path}: a mesh, not a landmark file (JSON or MeshLab .pp): the scan and "
+                              "the landmarks swapped?")
     raw = limits.read_capped(path, limits.LANDMARKS_MAX_BYTES, "landmark file")
     try:
         text = raw.decode("utf-8")

@@ -207,6 +207,14 @@ def test_an_fdp_given_twice_is_named_not_dropped(tmp_path, text, suffix):
         meshio.read_landmarks(tmp_path / f"t{suffix}")
 
 
+def test_a_mesh_given_as_the_landmarks_is_named_as_one(tmp_path):
+    """--scan and --landmarks swapped: the scan's PLY read as landmarks said only that 1.2 MB is over
+    the landmark file's limit (a small one: that it is not JSON)."""
+    (tmp_path / "scan.ply").write_bytes(b"ply\nformat ascii 1.0\nend_header\n")
+    with pytest.raises(FileFormatError, match=r"scan\.ply: a mesh, not a landmark file .* swapped\?"):
+        meshio.read_landmarks(tmp_path / "scan.ply")
+
+
 def test_names_read_without_the_spaces_typed_round_them(tmp_path):
     (tmp_path / "l.pp").write_text('<PickedPoints><point name="3.7 " x="0" y="0" z="1"/></PickedPoints>')
     assert list(meshio.read_landmarks(tmp_path / "l.pp")) == ["3.7"]
