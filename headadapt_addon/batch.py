@@ -59,6 +59,20 @@ SCAN_SUFFIXES = (".obj", ".ply", ".stl")
 EXIT_OK, EXIT_BUG, EXIT_BAD_INPUT, EXIT_UNTRUSTWORTHY, EXIT_SCAN_FAILED, EXIT_INTERRUPTED = 0, 1, 2, 3, 4, 130
 
 
+def _at_least(low, kind, strictly=False):
+    """An argparse type: a number of `kind` at least (strictly: over) `low`, else the usual one-line
+    argparse error (exit 2) before anything runs: --timeout 0 killed every scan at once."""
+    def parse(text):
+        try:
+            value = kind(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+        if value < low or (strictly and value == low) or value != value:
+            raise argparse.ArgumentTypeError(f"{text} is not {'over' if strictly else 'at least'} {low}")
+        return value
+    return parse
+
+
 def build_parser():
     """The command-line interface of the batch job."""
     from .core.adapt.options import MAX_LEVELS, AdaptOptions
@@ -92,10 +106,10 @@ def build_parser():
     f.add_argument("--blend", action="store_true", help="also write OUT/NAME/NAME.blend for each scan")
     f.add_argument("--preview", action="store_true",
                    help="also write OUT/NAME/preview.png for each scan (the scan beside the head with its heat map)")
-    f.add_argument("--jobs", type=int, default=0, help="scans at a time (default: the number of cores)")
-    f.add_argument("--timeout", type=float, default=900.0,
+    f.add_argument("--jobs", type=_at_least(0, int), default=0, help="scans at a time (default 0: the number of cores)")
+    f.add_argument("--timeout", type=_at_least(0, float, strictly=True), default=900.0,
                    help="seconds a scan may take before its process is killed (default 900)")
-    f.add_argument("--memory-gb", type=float, default=8.0,
+    f.add_argument("--memory-gb", type=_at_least(0, float, strictly=True), default=8.0,
                    help="address-space limit of each scan's process, GB (default 8)")
     f.add_argument("--scheduler", help="run the scans on this Dask distributed scheduler (tcp://HOST:8786) "
                                        "instead of local processes; OUT must be visible to its workers")

@@ -262,3 +262,13 @@ def test_an_output_that_cannot_be_written_is_refused_before_the_fit(tmp_path, in
     assert "level" not in proc.stdout                        # refused before the fit
     assert {p: digest(p) for p in tmp_path.rglob("*") if p.is_file()} == before
     assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("arg", [("--timeout", "0"), ("--memory-gb", "-1"), ("--jobs", "-2"), ("--timeout", "nan")])
+def test_folder_limits_that_would_fail_every_scan_are_refused_before_anything_runs(tmp_path, inputs, arg):
+    """--timeout 0 killed every scan at once and --memory-gb 0 failed each 'out of memory' (exit 4 after
+    a run over the whole folder); now argparse's one error line, exit 2, nothing made."""
+    scan, _marks = inputs
+    proc = batch("folder", "--folder", scan.parent, "--out", tmp_path / "out", *arg)
+    assert proc.returncode == 2 and f"argument {arg[0]}: {arg[1]} is not" in proc.stderr, proc.stderr
+    assert not (tmp_path / "out").exists()
