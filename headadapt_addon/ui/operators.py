@@ -15,6 +15,7 @@ from bpy_extras.io_utils import ExportHelper, ImportHelper
 from ..blender import bridge, landmarks, scene
 from ..blender.scene import head_root
 from ..core import mpeg4
+from ..core.adapt.options import MAX_LEVELS
 from ..core.exceptions import HeadAdaptError
 from . import jobs, kept
 from .jobs import Job, Modal, Run
@@ -538,7 +539,7 @@ class HEADADAPT_OT_adapt(Modal, _Base, bpy.types.Operator):
     bl_idname = "headadapt.adapt"
     bl_label = "Adapt"
     long_run = True                  # greyed while an Adapt or a Bake runs (jobs.busy)
-    levels: bpy.props.IntProperty(name="Levels", default=-1, min=-1, max=8,
+    levels: bpy.props.IntProperty(name="Levels", default=-1, min=-1, max=MAX_LEVELS,
                                   description="Levels after level 0 (-1: the scene setting)")
 
     @classmethod
