@@ -90,10 +90,15 @@ def set_vertex_positions(mesh, verts):
 
 
 def add_shape_key(obj, name, verts):
-    """Add (or replace) a shape key `name` on obj with vertex positions (n,3), local coordinates."""
+    """Add (or replace) a shape key `name` on obj with vertex positions (n,3), local coordinates. A new
+    key starts at value 0, the rest pose: Blender 5 gives a key made by shape_key_add the value 1
+    (Blender 3 and 4 gave 0), and a head's hundred baked keys would all act at once."""
     if obj.data.shape_keys is None:
         obj.shape_key_add(name="Basis", from_mix=False)
-    key = obj.data.shape_keys.key_blocks.get(name) or obj.shape_key_add(name=name, from_mix=False)
+    key = obj.data.shape_keys.key_blocks.get(name)
+    if key is None:
+        key = obj.shape_key_add(name=name, from_mix=False)
+        key.value = 0.0
     key.data.foreach_set("co", np.ascontiguousarray(verts, dtype=np.float32).ravel())
     return key
 

@@ -305,6 +305,15 @@ def test_expressions_panel_bakes_the_template_and_imports_a_fap_file(ui_scene, t
             peaks.append(max(mpeg4.EXPRESSIONS, key=lambda n: kb[n].value) if max(kb[n].value for n in mpeg4.EXPRESSIONS) > 0.5 else None)
         order = [p for i, p in enumerate(peaks) if p and (i == 0 or peaks[i - 1] != p)]
         assert order == list(mpeg4.EXPRESSIONS)
+        # at rest every key is 0 and the head is the head: Blender 5 gives a key made by shape_key_add
+        # the value 1, which left every unkeyed key on (the sample's rest face up to 87 mm off)
+        sc.frame_set(sc.frame_start)
+        parts = [o for o in root.children_recursive if o.type == "MESH" and o.data.shape_keys]
+        on = {(o.name, k.name) for o in parts for k in o.data.shape_keys.key_blocks[1:] if k.value != 0.0}
+        assert not on, sorted(on)[:5]
+        dg = bpy.context.evaluated_depsgraph_get()
+        shown = np.array([v.co for v in skin.evaluated_get(dg).to_mesh().vertices])
+        assert np.abs(shown - np.array([v.co for v in kb["Basis"].data])).max() < 1e-6
         # a .fap file: open_jaw ramps 0 -> 512 MNS over 3 frames, head_yaw turns the root
         n = 3
         vals = np.full((n, mpeg4.N_FAPS + 1), np.nan)
