@@ -78,8 +78,7 @@ class ScanSide:
         self.border_edges = geometry.boundary_edges(tris) if border is None else border   # found once: faces, vertices, on_border
         on = np.zeros(len(verts), bool)
         on[self.border_edges.ravel()] = True
-        # as geometry.boundary_faces, corner by corner (numpy's any(axis=1) of a (k,3) array: 20x slower)
-        self.boundary_faces = on[tris[:, 0]] | on[tris[:, 1]] | on[tris[:, 2]]
+        self.boundary_faces = geometry.any_corner(on, tris)          # as geometry.boundary_faces
         self.boundary_verts = np.zeros(len(verts), bool)
         self.boundary_verts[tris[self.boundary_faces].ravel()] = True
         self._curv = None
@@ -154,8 +153,7 @@ class ScanSide:
         (the cut's border counts as boundary, so its vertices are not valid)."""
         if self._curv is None:
             t0 = time.perf_counter()
-            t = self.tris
-            tris = t if region is None else t[region[t[:, 0]] & region[t[:, 1]] & region[t[:, 2]]]
+            tris = self.tris if region is None else self.tris[geometry.all_corners(region, self.tris)]
             self._curv = curvature.mean_curvature(self.verts, tris, self.vertex_normals)
             self.seconds["curvature"] = time.perf_counter() - t0
         return self._curv

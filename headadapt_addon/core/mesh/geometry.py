@@ -121,8 +121,18 @@ def boundary_faces(t):
     """Boolean mask (k,) of the triangles touching a boundary vertex (hole or outer border)."""
     if len(t) == 0:
         return np.zeros(0, bool)
-    on = boundary_vertices(t, int(t.max()) + 1)
-    return on[t[:, 0]] | on[t[:, 1]] | on[t[:, 2]]          # (any(axis=1) of (k,3): 20x slower)
+    return any_corner(boundary_vertices(t, int(t.max()) + 1), t)
+
+
+def any_corner(mask, t):
+    """Boolean mask (k,) of the triangles with a corner in the vertex mask, corner by corner (numpy's
+    any(axis=1) of the (k,3) gather: 20x slower on a scan's 2M triangles)."""
+    return mask[t[:, 0]] | mask[t[:, 1]] | mask[t[:, 2]]
+
+
+def all_corners(mask, t):
+    """Boolean mask (k,) of the triangles with every corner in the vertex mask (as any_corner)."""
+    return mask[t[:, 0]] & mask[t[:, 1]] & mask[t[:, 2]]
 
 
 def orient_outward(v, t, centre, sums=None):
