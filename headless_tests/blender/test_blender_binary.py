@@ -74,12 +74,17 @@ def _in_a_window(script, tmp_path):
     subprocess.run([BLENDER, "-b", "--factory-startup", "--python-expr",
                     f"import bpy; bpy.ops.wm.save_as_mainfile(filepath={str(start)!r})"],
                    capture_output=True, env=env, timeout=300, check=True)
-    proc = subprocess.run(["xvfb-run", "-a", "-s", "-screen 0 1600x1000x24", BLENDER, "--factory-startup",
-                           "--enable-event-simulate", str(start), "--python",
-                           str(ROOT / "headless_tests" / "blender" / script)],
-                          capture_output=True, text=True, env=env, cwd=tmp_path, timeout=300)
     tag = f"{script.removesuffix('.py')}: RESULT "
-    line = next((s for s in proc.stdout.splitlines() if s.startswith(tag)), None)
+    for _attempt in range(2):
+        proc = subprocess.run(["xvfb-run", "-a", "-s", "-screen 0 1600x1000x24", BLENDER, "--factory-startup",
+                               "--enable-event-simulate", str(start), "--python",
+                               str(ROOT / "headless_tests" / "blender" / script)],
+                              capture_output=True, text=True, env=env, cwd=tmp_path, timeout=300)
+        line = next((s for s in proc.stdout.splitlines() if s.startswith(tag)), None)
+        # Debian's Blender 3.4 segfaults now and then with a worker thread running (about 1 run in 10,
+        # no backtrace); such a run says nothing about the add-on and is run once more
+        if line is not None or "Segmentation fault" not in proc.stdout + proc.stderr:
+            break
     assert line is not None, proc.stdout[-3000:] + proc.stderr[-3000:]
     return line.removeprefix(tag)
 
