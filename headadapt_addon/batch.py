@@ -113,6 +113,9 @@ def build_parser():
                    help="address-space limit of each scan's process, GB (default 8)")
     f.add_argument("--scheduler", help="run the scans on this Dask distributed scheduler (tcp://HOST:8786) "
                                        "instead of local processes; OUT must be visible to its workers")
+    f.add_argument("--resume", action="store_true",
+                   help="keep the scans an earlier run into OUT finished from the same files and options, and run "
+                        "the rest (an interrupted or failed run, new scans added to the folder)")
     common(f)
     d = sub.add_parser("demo", help="adapt the bundled template onto the bundled sample scan")
     d.add_argument("--out", default=str(ROOT / "out" / "demo"), help="output folder (default out/demo)")
@@ -141,9 +144,10 @@ def same_file(a: os.PathLike | str, b: os.PathLike | str) -> bool:
         return False
 
 
-def check_outputs(inputs: list[pathlib.Path], outputs: dict[str, pathlib.Path], overwrite: bool) -> None:
+def check_outputs(inputs: list[pathlib.Path], outputs: dict[str, pathlib.Path], overwrite: bool,
+                  hint: str = "--overwrite replaces it") -> None:
     """FileFormatError (exit 2) if an output is one of the inputs, two outputs are one file, or an output
-    exists and overwrite is false. outputs: {what it is: path}."""
+    exists and overwrite is false (the message ends with `hint`). outputs: {what it is: path}."""
     from .core.exceptions import FileFormatError
 
     items = list(outputs.items())
@@ -158,8 +162,7 @@ def check_outputs(inputs: list[pathlib.Path], outputs: dict[str, pathlib.Path], 
     if not overwrite:
         for what, out in items:
             if out.exists():
-                raise FileFormatError(f"refusing to replace {out} ({what} of an earlier run); "
-                                      "--overwrite replaces it")
+                raise FileFormatError(f"refusing to replace {out} ({what} of an earlier run); {hint}")
 
 
 def remove_results(paths) -> None:
@@ -230,6 +233,7 @@ def run_adapt(scan_path, landmarks_path, out_dir, levels=None, calibration="auto
     Refuses (FileFormatError) an output that is an input and, unless overwrite, any existing result;
     with overwrite the earlier results are deleted first. Any failure after that leaves report.json
     with "status": "failed" and the error (and no result beside it), then raises."""
+    from . import __version__
     from .core import meshio
     from .core.adapt import outcome as outcome_text
     from .core.exceptions import FileFormatError, HeadAdaptError
@@ -245,7 +249,8 @@ def run_adapt(scan_path, landmarks_path, out_dir, levels=None, calibration="auto
     check_writable(outputs)
     remove_results(outputs.values())
     record = {"status": "running", "run": run_id or uuid.uuid4().hex, "scan": str(scan_path),
-              "landmarks": str(landmarks_path)}
+              "landmarks": str(landmarks_path), "headadapt_version": __version__,
+              "options": run_options(levels, calibration, keep_flagged)}
     try:
         verts, tris = meshio.read_mesh(scan_path)
         verts = as_blender_stores(verts)
@@ -280,6 +285,14 @@ def run_adapt(scan_path, landmarks_path, out_dir, levels=None, calibration="auto
         warn(f"headadapt: warning: {line}")
     log(f"headadapt: wrote {', '.join(str(p) for p in outputs.values())} in {report['total_seconds']:.2f} s")
     return report
+
+
+def run_options(levels=None, calibration="auto", keep_flagged=False) -> dict:
+    """The choices a run was made with, as report.json records them (folder --resume keeps a result only
+    if they are this run's)."""
+    from .core.adapt.options import AdaptOptions
+    return {"levels": AdaptOptions.max_levels if levels is None else int(levels), "calibration": calibration,
+            "keep_flagged": bool(keep_flagged)}
 
 
 def as_blender_stores(verts):
@@ -511,10 +524,39 @@ def run_isolated(job: dict) -> dict:
             {**report, "status": "failed" if status != "not finished" else status, "run": job["run"],
              "scan": job["scan"], "error": error}, indent=1))
         return {**entry, "status": status, "error": error, "seconds": seconds}
+    return _done_entry(entry, report, seconds)
+
+
+def _done_entry(entry: dict, report: dict, seconds: float) -> dict:
+    """The summary entry of a scan adapted: entry's scan, landmarks and out, the rest from its report."""
     return {**entry, "status": "done", "ok": True, "outcome_ok": report["outcome"]["ok"],
             "best_level": report["best_level"], "E_d_rms_mm": report["levels"][report["best_level"]]["E_d_rms_mm"],
             "outcome": report["outcome"], "seconds": seconds, "flagged_fdps": list(report["flagged_fdps"]),
             "warnings": report["warnings"], "inputs_sha256": report["inputs_sha256"]}
+
+
+def kept_result(job: dict, template_sha256: str) -> dict | None:
+    """folder --resume: the summary entry of a scan an earlier run into the same folder finished (report.json
+    "done", every output of this run's options there) from the same scan and landmark bytes, template,
+    HeadAdapt version and options as this run would use, marked "kept"; None if it is to run again."""
+    from . import __version__
+
+    out_dir = pathlib.Path(job["out_dir"])
+    try:
+        report = json.loads((out_dir / "report.json").read_text())
+    except (OSError, ValueError):
+        return None
+    if (not isinstance(report, dict) or report.get("status") != "done" or job["landmarks"] is None
+            or report.get("template_sha256") != template_sha256 or report.get("headadapt_version") != __version__
+            or report.get("options") != run_options(job["levels"], job["calibration"], job["keep_flagged"])
+            or not all(p.is_file() for p in result_paths(out_dir, job["blend"], job["preview"]).values())):
+        return None
+    try:
+        same = report.get("inputs_sha256") == {"scan": file_sha256(job["scan"]), "landmarks": file_sha256(job["landmarks"])}
+        entry = {"scan": job["scan"], "landmarks": job["landmarks"], "out": str(out_dir), "ok": False}
+        return {**_done_entry(entry, report, float(report["total_seconds"])), "kept": report["run"]} if same else None
+    except (OSError, KeyError, TypeError, IndexError):
+        return None
 
 
 def _read_report(path: pathlib.Path, run: str) -> dict:
@@ -577,14 +619,17 @@ def _adapt_exit_code(scan, landmarks, out, levels, calibration, keep_flagged, bl
 
 
 def run_folder(folder, out, jobs=0, levels=None, calibration="auto", keep_flagged=False, blend=False, overwrite=False,
-               timeout=900.0, memory_gb=8.0, scheduler=None, log=print, warn=_stderr, preview=False):
+               timeout=900.0, memory_gb=8.0, scheduler=None, log=print, warn=_stderr, preview=False, resume=False):
     """Adapt every scan + landmarks pair of a folder, each scan in its own process (local threads start
     them, or the tasks of a Dask cluster at `scheduler`); return the summary, also in OUT/summary.json,
     which is rewritten after every scan and after an interruption (Ctrl-C, SIGTERM: "interrupted" true,
     the scans not done "not finished"). A scan adapted with an outcome that is not ok counts as done
-    with warnings ("outcome_ok": false); a failed scan never stops the others."""
+    with warnings ("outcome_ok": false); a failed scan never stops the others. With resume, the scans an
+    earlier run finished (kept_result) are kept as they are, named "kept" in the summary, and only the
+    others run (their earlier files replaced)."""
     from .core import meshio
     from .core.exceptions import FileFormatError
+    from .core.template import TEMPLATE_DIR
 
     folder, out = pathlib.Path(folder), pathlib.Path(out)
     if not folder.is_dir():
@@ -599,15 +644,22 @@ def run_folder(folder, out, jobs=0, levels=None, calibration="auto", keep_flagge
              "preview": str(out / name / "preview.png") if preview else None,
              "calibration": calibration, "keep_flagged": keep_flagged, "timeout": timeout, "memory_gb": memory_gb,
              "run": run} for (s, m), name in zip(pairs, names)]
+    kept = {}
+    if resume:
+        template_sha256 = json.loads((TEMPLATE_DIR / "template.json").read_text())["content_sha256"]
+        kept = {job["scan"]: e for job in work if (e := kept_result(job, template_sha256)) is not None}
+    every, work = work, [job for job in work if job["scan"] not in kept]
     outputs = {"summary": out / "summary.json"}
     for job in work:
         outputs.update({f"{what} of {job['name']}": path for what, path in
                         {**result_paths(job["out_dir"], job["blend"], job["preview"]),
                          "log": pathlib.Path(job["out_dir"]) / "log.txt"}.items()})
-    check_outputs([p for pair in pairs for p in pair if p], outputs, overwrite)
+    check_outputs([p for pair in pairs for p in pair if p], outputs, overwrite or resume,
+                  "--resume runs the scans it did not finish, --overwrite redoes them all")
     remove_results(outputs.values())
-    entries = {job["scan"]: {"scan": job["scan"], "landmarks": job["landmarks"], "out": job["out_dir"],
-                             "status": "not finished", "ok": False} for job in work}
+    entries = {job["scan"]: kept.get(job["scan"]) or {"scan": job["scan"], "landmarks": job["landmarks"],
+                                                      "out": job["out_dir"], "status": "not finished", "ok": False}
+               for job in every}
     summary = {"folder": str(folder), "out": str(out), "scheduler": scheduler or "local", "run": run,
                "interrupted": False}
 
@@ -641,8 +693,12 @@ def run_folder(folder, out, jobs=0, levels=None, calibration="auto", keep_flagge
             warn(f"headadapt: warning: {name}: {line}")
         write_summary()
 
-    log(f"headadapt: {len(work)} scans from {folder} into {out} "
-        f"({'Dask scheduler ' + scheduler if scheduler else 'local processes'})")
+    how = f"({'Dask scheduler ' + scheduler if scheduler else 'local processes'})"
+    if resume:
+        log(f"headadapt: {len(every)} scans in {folder}: {len(kept)} done by an earlier run, kept (--resume); "
+            f"{len(work)} to adapt into {out} {how}")
+    else:
+        log(f"headadapt: {len(work)} scans from {folder} into {out} {how}")
     previous = _on_sigterm_interrupt()
     try:
         if scheduler:
@@ -757,9 +813,11 @@ def main(argv=None):
                                 args.calibration, args.keep_flagged, out / "demo.blend", True,
                                 preview=out / "preview.png")
     try:
+        if args.resume and args.overwrite:
+            raise HeadAdaptError("--resume keeps an earlier run's results and --overwrite redoes them: give one")
         summary = run_folder(args.folder, args.out, args.jobs, args.levels, args.calibration, args.keep_flagged,
                              args.blend, args.overwrite, args.timeout, args.memory_gb, args.scheduler,
-                             preview=args.preview)
+                             preview=args.preview, resume=args.resume)
     except HeadAdaptError as exc:
         _stderr(f"headadapt: error: {exc}")
         return EXIT_BAD_INPUT

@@ -253,11 +253,50 @@ def test_kill_9_leaves_only_complete_results_and_no_scan_running(tmp_path):
     results = [p for p in out.rglob("*") if p.is_file() and not p.name.startswith(".")]
     assert sorted(p.relative_to(out).as_posix() for p in results) == [
         "a_good/adapted_head.obj", "a_good/log.txt", "a_good/report.json", "b_stuck/log.txt", "summary.json"]
-    # the stuck scan fixed, a rerun with --overwrite completes both
+    # the stuck scan fixed, a rerun with --resume keeps a_good as it is and adapts b_stuck
     stuck.unlink()
     add_scan(src, "b_stuck.obj", (out / "a_good" / "adapted_head.obj").read_bytes())
-    rerun = subprocess.run(batch_cmd("folder", "--folder", src, "--out", out, "--levels", "1", "--overwrite"),
+    before = {p.name: (p.read_bytes(), p.stat().st_mtime_ns) for p in (out / "a_good").iterdir()}
+    rerun = subprocess.run(batch_cmd("folder", "--folder", src, "--out", out, "--levels", "1", "--resume"),
                            capture_output=True, text=True, timeout=300, cwd=ROOT)
     assert rerun.returncode in (0, 3), rerun.stdout + rerun.stderr
+    assert "2 scans in" in rerun.stdout and "1 done by an earlier run, kept (--resume); 1 to adapt" in rerun.stdout
     summary, scans = summary_by_name(out)
-    assert {s["status"] for s in scans.values()} == {"done"}
+    assert {s["status"] for s in scans.values()} == {"done"} and summary["done"] == 2
+    assert scans["a_good.ply"]["kept"] and "kept" not in scans["b_stuck.obj"]
+    assert {p.name: (p.read_bytes(), p.stat().st_mtime_ns) for p in (out / "a_good").iterdir()} == before
+
+
+def test_resume_keeps_only_results_of_the_same_inputs_and_options(tmp_path):
+    """A rerun into the same folder is refused, pointing to --resume; --resume runs again a scan whose
+    landmark file changed, whose result lost a file, or every scan when the options differ."""
+    src, out = tmp_path / "scans", tmp_path / "out"
+    for name in ("a.ply", "b.ply", "c.ply"):
+        add_scan(src, name)
+
+    def run(*extra):
+        return subprocess.run(batch_cmd("folder", "--folder", src, "--out", out, "--levels", "1", "--jobs", "1", *extra),
+                              capture_output=True, text=True, timeout=300, cwd=ROOT)
+
+    def runs():
+        return {n: json.loads((out / n[0] / "report.json").read_text())["run"] for n in ("a.ply", "b.ply", "c.ply")}
+
+    assert run().returncode == 0
+    first = runs()
+    again = run()
+    assert again.returncode == 2 and "--resume runs the scans it did not finish" in again.stderr
+    with open(src / "b.json", "a") as fh:
+        fh.write("\n")                                 # the same clicks, but not the same file
+    (out / "c" / "adapted_head.obj").unlink()
+    resumed = run("--resume")
+    assert resumed.returncode == 0, resumed.stdout + resumed.stderr
+    second = runs()
+    assert second["a.ply"] == first["a.ply"] and second["b.ply"] != first["b.ply"] != second["c.ply"]
+    _, scans = summary_by_name(out)
+    assert scans["a.ply"]["kept"] == first["a.ply"] and scans["a.ply"]["status"] == "done"
+    assert [s for s in scans if "kept" in scans[s]] == ["a.ply"]
+    # other options: nothing kept
+    other = run("--resume", "--calibration", "paper")
+    assert "0 done by an earlier run" in other.stdout and len(set(runs().values()) & set(second.values())) == 0
+    both = run("--resume", "--overwrite")
+    assert both.returncode == 2 and "give one" in both.stderr
