@@ -85,7 +85,10 @@ def keyframe_key(root, name, frames, values):
 
 
 def preview_action(root, names=mpeg4.EXPRESSIONS, frames_each=PREVIEW_FRAMES, start=1):
-    """Keyframe the named keys one after another (0 -> 1 -> 0 each) and set the scene's frame range."""
+    """Keyframe the named keys one after another (0 -> 1 -> 0 each) and set the scene's frame range; what
+    HeadAdapt keyed on this head before (an earlier preview, a .fap) is taken off first."""
+    skin = scene.template_objects(root).get("skin")
+    clear_animation(root, set(json.loads(skin.get("headadapt_keys", "{}"))) | set(names) if skin else set(names))
     for i, name in enumerate(names):
         a = start + i * frames_each
         frames = [start, a, a + frames_each // 3, a + 2 * frames_each // 3, a + frames_each]
@@ -106,49 +109,130 @@ def head_pivot(root):
     return np.asarray(bundled_template().meta["head_pivot"], dtype=float)
 
 
+def clear_animation(root, names):
+    """Take off the keyframes HeadAdapt put on this head, so the next ones play alone: the F-curves of the
+    baked keys `names` on every part (the bake's preview, an earlier .fap), those keys set back to 0,
+    and an earlier .fap's head turn (the root's rotation and location F-curves, the root back at the
+    rest pose it had before that turn)."""
+    import mathutils
+    for o in [root, *root.children_recursive]:
+        keys = o.data.shape_keys if o.type == "MESH" else None
+        if keys is None:
+            continue
+        fcurves = _fcurves(keys) if keys.animation_data and keys.animation_data.action else None
+        for fc in [f for f in (fcurves or ()) if _keyed_name(f.data_path) in names]:
+            fcurves.remove(fc)
+        for block in keys.key_blocks[1:]:
+            if block.name in names:
+                block.value = 0.0
+    if HEAD_REST in root:
+        fcurves = _fcurves(root) if root.animation_data and root.animation_data.action else None
+        for fc in [f for f in (fcurves or ()) if f.data_path in ("location", *ROTATIONS)]:
+            fcurves.remove(fc)
+        root.matrix_basis = mathutils.Matrix(np.reshape(root[HEAD_REST], (4, 4)).tolist())
+
+
+def _keyed_name(data_path):
+    """The shape key a `key_blocks["NAME"].value` F-curve drives, else None."""
+    head, tail = 'key_blocks["', '"].value'
+    return data_path[len(head):-len(tail)] if data_path.startswith(head) and data_path.endswith(tail) else None
+
+
+HEAD_REST = "headadapt_head_rest"        # the root's matrix_basis before a .fap first turned it
+ROTATIONS = {"rotation_euler": 3, "rotation_quaternion": 4, "rotation_axis_angle": 4}
+
+
 def head_rotation(root, anim, frames):
     """Keyframe head_pitch/yaw/roll (FAP 48-50, AU = mpeg4.AU_RAD) as root's rotation about the head
-    pivot: the root's location is keyed with it so the pivot stays where it is. Returns how many of
-    the three the file gives."""
-    import mathutils
+    pivot: the turn is applied in the head's own frame after its rest rotation (the root's pose before
+    a .fap first turned it, kept on the root), in whichever rotation mode the root uses, and the
+    root's location is keyed with it so the pivot stays where it is. Returns how many of the three
+    the file gives."""
+    from scipy.spatial.transform import Rotation
     cols = {axis: anim.values[:, mpeg4.FAP_BY_NAME[name].number] for name, (axis, _) in FAP_HEAD.items()}
     cols = {axis: col for axis, col in cols.items() if (~np.isnan(col)).any()}
     if not cols:
         return 0
-    base_rot, base_loc = np.array(root.rotation_euler), np.array(root.location)
-    angles = np.tile(base_rot, (len(frames), 1))
+    if HEAD_REST not in root:
+        root[HEAD_REST] = [float(v) for row in root.matrix_basis for v in row]
+    rest = np.reshape(root[HEAD_REST], (4, 4))
+    scale = np.linalg.norm(rest[:3, :3], axis=0)
+    rest_turn = Rotation.from_matrix(rest[:3, :3] / scale)
+    keyed = np.zeros(len(frames), bool)
+    turn = np.zeros((len(frames), 3))
     for axis, col in cols.items():
         given = ~np.isnan(col)
-        angles[:, axis] = base_rot[axis] + np.interp(frames, frames[given], col[given] * mpeg4.AU_RAD)
-        _fcurve_set(root, "rotation_euler", frames[given], angles[given, axis], index=axis)
-    scaled_pivot = mathutils.Vector(np.array(root.scale) * head_pivot(root))
-    mode = root.rotation_mode if root.rotation_mode in ("XYZ", "XZY", "YXZ", "YZX", "ZXY", "ZYX") else "XYZ"
-
-    def turned(a):
-        return np.array(mathutils.Euler(a, mode).to_matrix() @ scaled_pivot)
-    rest = base_loc + turned(base_rot)
-    loc = np.array([rest - turned(a) for a in angles])
-    for axis in range(3):
-        _fcurve_set(root, "location", frames, loc[:, axis], index=axis)
+        keyed |= given
+        turn[:, axis] = np.interp(frames, frames[given], col[given] * mpeg4.AU_RAD)
+    frames, turn = frames[keyed], turn[keyed]
+    turned = rest_turn * Rotation.from_euler("xyz", turn)          # Blender's XYZ Euler: X first
+    pivot = scale * head_pivot(root)
+    loc = rest[:3, 3] + rest_turn.apply(pivot) - turned.apply(pivot)
+    mode = root.rotation_mode
+    if mode == "QUATERNION":
+        path, channels = "rotation_quaternion", _continuous(turned.as_quat()[:, [3, 0, 1, 2]])
+    elif mode == "AXIS_ANGLE":
+        rotvec = turned.as_rotvec()
+        angle = np.linalg.norm(rotvec, axis=1)
+        axis = np.where(angle[:, None] > 1e-12, rotvec / np.maximum(angle, 1e-12)[:, None], (0.0, 1.0, 0.0))
+        path, channels = "rotation_axis_angle", np.c_[angle, axis]
+    else:                   # an Euler order: Blender's ZXY applies Z first, as scipy's extrinsic "zxy"
+        order = mode.lower()
+        angles = np.unwrap(turned.as_euler(order), axis=0)
+        path, channels = "rotation_euler", angles[:, [order.index(c) for c in "xyz"]]
+    for i in range(channels.shape[1]):
+        _fcurve_set(root, path, frames, channels[:, i], index=i)
+    for i in range(3):
+        _fcurve_set(root, "location", frames, loc[:, i], index=i)
     return len(cols)
+
+
+def _continuous(quats):
+    """Quaternions (k,4) with their signs chosen so each is the nearer of q and -q to the one before."""
+    flip = np.r_[1.0, np.sign(np.einsum("ij,ij->i", quats[1:], quats[:-1]) + 1e-300)]
+    return quats * np.cumprod(flip)[:, None]
+
+
+MAX_FRAME = 1_048_574                    # Blender's last frame
+SLIDER_LIMIT = 10.0                      # a shape key's slider reaches -10..10 at most
+
+
+def _scene_fps(fps):
+    """(fps, fps_base) of the scene for a file's frame rate (Blender: an integer 1..32767 over a base
+    1e-5..1e6), or None when Blender's scene cannot hold it."""
+    whole = min(32767, max(1, int(round(fps))))
+    base = whole / fps
+    return (whole, base) if 1e-5 <= base <= 1e6 else None
 
 
 def import_fap(root, anim, start=1):
     """Keyframe an MPEG-4 FapAnimation on a baked head: FAP keys, expressions, visemes, head rotation.
 
-    A FAP's key value is its .fap value / the FAP units its key stands for (recorded at bake time);
-    expressions take intensity / 63; visemes blend by viseme_blend / 63 (mpeg4.INTENSITY_MAX);
-    head_pitch/yaw/roll turn the root about the head pivot (head_rotation). Returns {what: count} keyed.
+    The file's animation replaces what HeadAdapt keyed on this head before (the bake's preview, an
+    earlier .fap: clear_animation). A FAP's key value is its .fap value / the FAP units its key stands
+    for (recorded at bake time); expressions take intensity / 63; visemes blend by viseme_blend / 63
+    (mpeg4.INTENSITY_MAX); head_pitch/yaw/roll turn the root about the head pivot (head_rotation). A key
+    asked beyond its slider range gets its range widened, up to Blender's -10..10; beyond that it is
+    cut there and named in "clipped". Everything is checked before anything changes: HeadAdaptError
+    for a file with no frames, longer than Blender's timeline or at a frame rate its scene cannot
+    hold. Returns {what: count keyed, "clipped": {key: the largest value asked}}.
     """
     full = float(mpeg4.INTENSITY_MAX)
     objs = scene.template_objects(root)
     info = json.loads(objs["skin"].get("headadapt_keys", "{}"))
     if not info:
         raise HeadAdaptError(f"{root.name!r} has no baked shape keys: bake expressions first")
-    frames = anim.frames - anim.frames[0] + start
-    sc = bpy.context.scene
-    if anim.fps > 0:
-        sc.render.fps, sc.render.fps_base = int(round(anim.fps)), round(anim.fps) / anim.fps
+    if not len(anim.frames):
+        raise HeadAdaptError("the file holds no frames: nothing to play")
+    span = int(anim.frames[-1]) - int(anim.frames[0])
+    if span + start > MAX_FRAME:
+        raise HeadAdaptError(f"its frames span {span + 1:,} frame numbers; Blender's timeline ends at frame "
+                             f"{MAX_FRAME:,}")
+    rate = _scene_fps(anim.fps)
+    if rate is None:
+        raise HeadAdaptError(f"a frame rate of {anim.fps:g} fps is beyond what a Blender scene can play")
+    frames = (anim.frames - anim.frames[0]).astype(np.float64) + start
+    curves = {}                                            # key name -> (frames, values)
     counts = {"faps": 0, "expressions": 0, "visemes": 0, "head": 0}
     for number, fap in mpeg4.FAPS.items():
         col = anim.values[:, number]
@@ -156,28 +240,41 @@ def import_fap(root, anim, start=1):
         if fap.kind == "high" or not given.any():
             continue
         if fap.name in info and info[fap.name].get("fap_units"):
-            keyframe_key(root, fap.name, frames[given], col[given] / info[fap.name]["fap_units"])
+            curves[fap.name] = (frames[given], col[given] / info[fap.name]["fap_units"])
             counts["faps"] += 1
-    counts["head"] = head_rotation(root, anim, frames)
     ex = anim.expressions
     if (~np.isnan(ex[:, 0])).any():
         rows = ~np.isnan(ex[:, 0])
         for i, name in enumerate(mpeg4.EXPRESSIONS, start=1):
-            if name not in info:
-                continue
-            w = (np.where(ex[rows, 0] == i, ex[rows, 1], 0.0) + np.where(ex[rows, 2] == i, ex[rows, 3], 0.0)) / full
-            keyframe_key(root, name, frames[rows], w)
-            counts["expressions"] += 1
+            if name in info:
+                w = (np.where(ex[rows, 0] == i, ex[rows, 1], 0.0) + np.where(ex[rows, 2] == i, ex[rows, 3], 0.0)) / full
+                curves[name] = (frames[rows], w)
+                counts["expressions"] += 1
     vi = anim.visemes
     if (~np.isnan(vi[:, 0])).any():
         rows = ~np.isnan(vi[:, 0])
         blend = np.nan_to_num(vi[rows, 2], nan=full) / full
         for number, (name, _) in mpeg4.VISEMES.items():
             key = f"viseme_{name}"
-            if key not in info:
-                continue
-            w = np.where(vi[rows, 0] == number, blend, 0.0) + np.where(vi[rows, 1] == number, 1.0 - blend, 0.0)
-            keyframe_key(root, key, frames[rows], w)
-            counts["visemes"] += 1
+            if key in info:
+                w = np.where(vi[rows, 0] == number, blend, 0.0) + np.where(vi[rows, 1] == number, 1.0 - blend, 0.0)
+                curves[key] = (frames[rows], w)
+                counts["visemes"] += 1
+    clear_animation(root, set(info))
+    sc = bpy.context.scene
+    sc.render.fps, sc.render.fps_base = rate
+    clipped = {}
+    for name, (at, values) in curves.items():
+        low, high = float(values.min()), float(values.max())
+        if low < -SLIDER_LIMIT or high > SLIDER_LIMIT:
+            clipped[name] = high if high > -low else low
+            values = np.clip(values, -SLIDER_LIMIT, SLIDER_LIMIT)
+        for owner in _key_owners(root, name):
+            block = owner.key_blocks[name]
+            block.slider_min = min(block.slider_min, max(low, -SLIDER_LIMIT))
+            block.slider_max = max(block.slider_max, min(high, SLIDER_LIMIT))
+            _fcurve_set(owner, f'key_blocks["{name}"].value', at, values)
+    counts["head"] = head_rotation(root, anim, frames)
     sc.frame_start, sc.frame_end = int(frames[0]), int(frames[-1])
+    counts["clipped"] = clipped
     return counts

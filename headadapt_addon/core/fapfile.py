@@ -64,12 +64,28 @@ def _number(tok, path, line_no):
     return value
 
 
+def _numbers(tokens, path, line_no):
+    """The tokens of a data line as float64, all finite; else the first bad one named."""
+    try:
+        nums = np.array(tokens, dtype=np.float64)
+    except ValueError:
+        nums = None
+    if nums is None or not np.isfinite(nums).all():
+        for tok in tokens:
+            _number(tok, path, line_no)
+    return nums
+
+
 def read_fap(path):
-    """Read a .fap file into a FapAnimation (values in FAPUs); FileFormatError names the file and line."""
+    """Read a .fap file into a FapAnimation (values in FAPUs); FileFormatError names the file and line.
+    Frame numbers must increase. A line is split only when its frame is read, a data line's numbers are
+    converted at once and a mask line's bits once per distinct mask (an hour at 30 fps: 108,000
+    frames), so the file's text is most of the memory it takes."""
     path = pathlib.Path(path)
-    text = limits.read_capped(path, limits.FAP_MAX_BYTES, "FAP file").decode("utf-8", errors="replace")
-    lines = [(no, ln.split()) for no, ln in enumerate(text.splitlines(), 1) if ln.strip() and not ln.lstrip().startswith("#")]
-    head_no, head = lines[0] if lines else (1, [])
+    text = limits.read_capped(path, limits.FAP_MAX_BYTES, "FAP file").decode("utf-8-sig", errors="replace")
+    lines = [(no, ln) for no, ln in enumerate(text.splitlines(), 1) if ln.strip() and not ln.lstrip().startswith("#")]
+    del text
+    head_no, head = (lines[0][0], lines[0][1].split()) if lines else (1, [])
     if len(head) < 4:
         raise _error(path, head_no, f"bad header {_shown(' '.join(head))}, expected '2.1 <name> <frame rate> <frames>'")
     _number(head[0], path, head_no)
@@ -83,30 +99,42 @@ def read_fap(path):
         raise FileFormatError(f"{path}: the header (line {head_no}) says {n} frames, the file holds only {len(body) // 2}")
     frames, values = np.zeros(n, np.int64), np.full((n, N + 1), np.nan)
     visemes, expressions = np.full((n, 4), np.nan), np.full((n, 6), np.nan)
+    masks = {}                                  # mask line -> (FAP columns of the rest, FAP 1, FAP 2, k, full)
     for f in range(n):
-        (mask_no, mask), (data_no, data) = body[2 * f], body[2 * f + 1]
-        if len(mask) != N:
-            raise _error(path, mask_no, f"the mask of frame {f + 1} has {len(mask)} entries, expected {N} bits")
-        bad = [t for t in mask if t not in ("0", "1")]
-        if bad:
-            raise _error(path, mask_no, f"mask entry {_shown(bad[0])} is not 0 or 1")
-        bits = np.array(mask) == "1"
-        nums = [_number(t, path, data_no) for t in data]
+        (mask_no, mask_line), (data_no, data_line) = body[2 * f], body[2 * f + 1]
+        mask = masks.get(mask_line)
+        if mask is None:
+            tokens = mask_line.split()
+            if len(tokens) != N:
+                raise _error(path, mask_no, f"the mask of frame {f + 1} has {len(tokens)} entries, expected {N} bits")
+            bad = [t for t in tokens if t not in ("0", "1")]
+            if bad:
+                raise _error(path, mask_no, f"mask entry {_shown(bad[0])} is not 0 or 1")
+            bits = np.array(tokens) == "1"
+            k = int(bits.sum())
+            mask = masks[mask_line] = (np.flatnonzero(bits[2:]) + 3, bool(bits[0]), bool(bits[1]), k,
+                                       k + 3 * int(bits[0]) + 5 * int(bits[1]))
+        rest, has = mask[0], {1: mask[1], 2: mask[2]}
+        k, full = mask[3], mask[4]
+        data = data_line.split()
+        nums = _numbers(data, path, data_no)
         if not nums[0].is_integer() or abs(nums[0]) >= 2 ** 63:
             raise _error(path, data_no, f"frame number {_shown(data[0])} is not a whole number of 64 bits")
-        k, got = int(bits.sum()), len(nums) - 1
-        full = k + 3 * bits[0] + 5 * bits[1]
+        got = len(nums) - 1
         if got not in (k, full):
             raise _error(path, data_no, f"{got} values for {k} FAPs in the mask, expected {k}"
                          + (f" or {full} (FAP 1/2 with 4/6 values)" if full != k else ""))
+        frames[f] = int(nums[0])
+        if f and frames[f] <= frames[f - 1]:
+            raise _error(path, data_no, f"frame number {frames[f]} does not follow frame {frames[f - 1]}: "
+                                        "the frame numbers must increase")
         wide, vals, pos = got == full and full != k, nums[1:], 0
         for fap, out in ((1, visemes), (2, expressions)):
-            if bits[fap - 1]:
+            if has[fap]:
                 width = out.shape[1] if wide else 1
                 out[f] = vals[pos:pos + width] if wide else (vals[pos], *_ONE_VALUE_REST[fap])
                 values[f, fap], pos = vals[pos], pos + width
-        values[f, np.flatnonzero(bits[2:]) + 3] = vals[pos:]
-        frames[f] = int(nums[0])
+        values[f, rest] = vals[pos:]
     if len(body) > 2 * n:
         raise _error(path, body[2 * n][0], f"more lines than the header's {n} frames")
     return FapAnimation(" ".join(head[1:-2]), fps, frames, values, visemes, expressions)

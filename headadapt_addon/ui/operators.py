@@ -596,13 +596,22 @@ class HEADADAPT_OT_import_fap(_Base, ImportHelper, bpy.types.Operator):
         from ..blender import animation
         from ..core.fapfile import read_fap
         root = head_root(context)
+        name = pathlib.Path(self.filepath).name
         try:
             anim = read_fap(self.filepath)
-            counts = animation.import_fap(root, anim)
         except HeadAdaptError as exc:
             return self.fail(str(exc))
-        self.report({"INFO"}, f"{pathlib.Path(self.filepath).name}: {len(anim.frames)} frames at {anim.fps:g} fps; "
+        try:
+            counts = animation.import_fap(root, anim)
+        except HeadAdaptError as exc:
+            return self.fail(f"{self.filepath}: {exc}")
+        clipped = counts.pop("clipped")
+        self.report({"INFO"}, f"{name}: {len(anim.frames)} frames at {anim.fps:g} fps; "
                               + ", ".join(f"{v} {k}" for k, v in counts.items()))
+        if clipped:
+            self.report({"WARNING"}, f"{name}: {len(clipped)} key{'s' if len(clipped) != 1 else ''} asked beyond what a shape key plays (-10 to 10 "
+                                     "times the baked amplitude), cut there: " + ", ".join(
+                                         f"{k} {v:.3g}" for k, v in sorted(clipped.items())))
         return {"FINISHED"}
 
 

@@ -510,12 +510,14 @@ def test_markers_and_the_head_turn_follow_the_adapted_head(ui_scene, tmp_path):
         rest = root.matrix_world @ mathutils.Vector(pivot)
         nose = next(o for o in root.children_recursive if o.get("headadapt_fdp") == "9.3")
         nose_rest = nose.matrix_world.translation.copy()
-        pitch = root.rotation_euler[0]            # the root carries the scan's placement: turned from it
+        rest_turn = root.matrix_basis.to_3x3().normalized()   # the root carries the scan's placement
         assert bpy.ops.headadapt.import_fap(filepath=str(tmp_path / "turn.fap")) == {"FINISHED"}
         for frame in (1, 2, 3):
             bpy.context.scene.frame_set(frame)
             assert (root.matrix_world @ mathutils.Vector(pivot) - rest).length < 1e-4 * root.matrix_world.median_scale
-        assert root.rotation_euler[0] == pytest.approx(pitch + 0.2, abs=1e-5)
+        # the turn is the head's own (pitch, roll, yaw) after its placement: frame 3's 0.2, -0.15, 0.2 rad
+        turn = rest_turn.transposed() @ root.matrix_basis.to_3x3().normalized()
+        assert np.allclose(turn, mathutils.Euler((0.2, -0.15, 0.2), "XYZ").to_matrix(), atol=1e-5)
         # the face turns: the nose tip moves by about its distance from the pivot times the angle
         assert (nose.matrix_world.translation - nose_rest).length > 0.1 * (nose_rest - rest).length
 

@@ -324,6 +324,7 @@ def test_expressions_panel_bakes_the_template_and_imports_a_fap_file(ui_scene, t
                                                    np.full((n, 6), np.nan)))
         sc.frame_set(1)
         rest = np.array(root.matrix_world @ Vector(tpl_head_pivot()))
+        at_rest = root.matrix_basis.copy()
         assert bpy.ops.headadapt.import_fap(filepath=str(tmp_path / "t.fap")) == {"FINISHED"}
         sc.frame_set(3)
         # the head turns about its pivot (FDP 7.1, the top of the spine), which stays put
@@ -336,3 +337,32 @@ def test_expressions_panel_bakes_the_template_and_imports_a_fap_file(ui_scene, t
         (tmp_path / "bad.fap").write_text("2.1 bad 25 1\n1 0 1\n0 5\n")
         with pytest.raises(RuntimeError, match="bad.fap, line 2"):
             bpy.ops.headadapt.import_fap(filepath=str(tmp_path / "bad.fap"))
+        # a second file replaces what was keyed before it, wherever the timeline stands: the bake's
+        # preview (joy...) and the first file's head turn are gone, the head back at its rest pose
+        nothing = np.full((2, 6), np.nan)
+        jaw = np.full((2, mpeg4.N_FAPS + 1), np.nan)
+        jaw[:, 3] = [0, 5 * info["open_jaw"]["fap_units"]]          # 5 times the key: beyond its slider's 3
+        write_fap(tmp_path / "jaw.fap", FapAnimation("jaw", 25.0, np.arange(2), jaw, nothing[:, :4], nothing))
+        sc.frame_set(3)
+        assert bpy.ops.headadapt.import_fap(filepath=str(tmp_path / "jaw.fap")) == {"FINISHED"}
+        assert (sc.frame_start, sc.frame_end) == (1, 2)
+        for frame in (1, 2, 17, 47):
+            sc.frame_set(frame)
+            assert [n for n in mpeg4.EXPRESSIONS if kb[n].value != 0] == [] and np.allclose(root.matrix_basis, at_rest)
+        sc.frame_set(2)
+        assert kb["open_jaw"].value == pytest.approx(5.0, rel=1e-4) and kb["open_jaw"].slider_max >= 5.0
+        # a root in quaternions turns too, about the pivot; a key asked past Blender's 10 is cut at 10
+        root.rotation_mode = "QUATERNION"
+        jaw[:, 3] = [0, 1e6 * info["open_jaw"]["fap_units"]]
+        jaw[:, 49] = [0, 30000]                                     # head_yaw 0.3 rad
+        write_fap(tmp_path / "yaw.fap", FapAnimation("yaw", 25.0, np.arange(2), jaw, nothing[:, :4], nothing))
+        assert bpy.ops.headadapt.import_fap(filepath=str(tmp_path / "yaw.fap")) == {"FINISHED"}
+        sc.frame_set(2)
+        assert kb["open_jaw"].value == pytest.approx(10.0)
+        assert np.allclose(np.array(root.matrix_world @ Vector(tpl_head_pivot())), rest, atol=1e-5)
+        assert root.rotation_quaternion.angle == pytest.approx(0.3, abs=1e-5)
+        # a file with no frames is refused, the scene as it was
+        (tmp_path / "empty.fap").write_text("2.1 empty 12 0\n")
+        with pytest.raises(RuntimeError, match="empty.fap: the file holds no frames"):
+            bpy.ops.headadapt.import_fap(filepath=str(tmp_path / "empty.fap"))
+        assert sc.render.fps == 25 and (sc.frame_start, sc.frame_end) == (1, 2) and kb["open_jaw"].value == 10.0

@@ -86,6 +86,9 @@ HEAD = "2.1 x 25 1\n"
     (HEAD + MASK(3) + "\n0.5 1\n", "line 3: frame number '0.5'"),
     ("2.1 x 25 3\n" + MASK(3) + "\n0 1\n" + MASK(3) + "\n", "says 3 frames, the file holds only 1"),
     (HEAD + MASK(3) + "\n0 1\n" + MASK(3) + "\n1 2\n", "line 4: more lines than the header's 1 frames"),
+    ("2.1 x 25 2\n" + MASK(3) + "\n10 1\n" + MASK(3) + "\n5 2\n", "line 5: frame number 5 does not follow frame 10"),
+    ("2.1 x 25 2\n" + MASK(3) + "\n0 1\n" + MASK(3) + "\n0 2\n", "line 5: frame number 0 does not follow frame 0"),
+    ("2.1 x 25 2\n" + MASK(3) + "\n0 1\n" + MASK(3) + "\n1 inf\n", "line 5: 'inf' is not a number"),
 ])
 def test_bad_files_name_the_file_and_line(tmp_path, text, where):
     path = tmp_path / "bad.fap"
@@ -108,3 +111,13 @@ def test_missing_file_unknown_fap_and_bad_animation(tmp_path):
     with pytest.raises(HeadAdaptError, match="'x'"):
         write_fap(tmp_path / "x.fap", anim)
     assert not (tmp_path / "x.fap").exists()
+
+
+def test_a_file_saved_with_a_byte_order_mark_reads_as_without(tmp_path):
+    """Windows Notepad wrote UTF-8 with a BOM; the header's first token is then '\\ufeff2.1'."""
+    text = "2.1 x 25 2\n" + MASK(3, 48) + "\n0 100 5\n" + MASK(3) + "\n7 200\n"
+    (tmp_path / "plain.fap").write_text(text)
+    (tmp_path / "bom.fap").write_bytes(b"\xef\xbb\xbf" + text.encode())
+    plain, bom = read_fap(tmp_path / "plain.fap"), read_fap(tmp_path / "bom.fap")
+    np.testing.assert_array_equal(bom.values, plain.values)
+    assert bom.frames.tolist() == [0, 7] and bom.values[0, 48] == 5 and np.isnan(bom.values[1, 48])
