@@ -5,7 +5,7 @@ Layers (one direction of dependency): operators/panels -> bridge (bpy <-> numpy)
 core and the batch job import without Blender.
 """
 
-__version__ = "0.1.0"
+from .core import __version__  # noqa: F401  (the package's version, kept in the core)
 
 
 def _modules():

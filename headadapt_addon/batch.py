@@ -80,17 +80,21 @@ def build_parser():
     parser = argparse.ArgumentParser(prog="headadapt", description=__doc__.split("\n\n")[0],
                                      epilog=__doc__.split("\n\n")[-1],      # the exit codes
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
-    sub = parser.add_subparsers(dest="command", required=True)
+    sub = parser.add_subparsers(dest="command", required=True, metavar="{adapt,folder,demo}")   # not _scan
 
-    def common(p):
+    def common(p, demo=False):
         p.add_argument("--levels", type=int, default=AdaptOptions.max_levels, choices=range(MAX_LEVELS + 1),
                        metavar="LEVELS", help=f"maximum number of levels after level 0, 0 to {MAX_LEVELS} "
                                               "(default %(default)s)")
-        p.add_argument("--calibration", choices=("auto", "paper", "umeyama"), default="auto")
+        p.add_argument("--calibration", choices=("auto", "paper", "umeyama"), default="auto",
+                       help="how the template is first placed on the clicks: the paper's construction from 8 "
+                            "FDPs, a least-squares similarity over all clicked FDPs (umeyama), or auto (the one "
+                            "nearer the clicks; default)")
         p.add_argument("--keep-flagged", action="store_true",
                        help="keep FDPs flagged as wrongly clicked (default: drop them and say so)")
         p.add_argument("--overwrite", action="store_true",
-                       help="replace the results of an earlier run (default: refuse, exit 2)")
+                       help="ignored: demo always replaces its own files" if demo else
+                       "replace the results of an earlier run (default: refuse, exit 2)")
 
     a = sub.add_parser("adapt", help="adapt the template onto a scan")
     a.add_argument("--scan", required=True, help="scan mesh: OBJ, PLY or STL (any unit, any pose)")
@@ -119,7 +123,7 @@ def build_parser():
     common(f)
     d = sub.add_parser("demo", help="adapt the bundled template onto the bundled sample scan")
     d.add_argument("--out", default=str(ROOT / "out" / "demo"), help="output folder (default out/demo)")
-    common(d)
+    common(d, demo=True)
     s = sub.add_parser("_scan")                      # one scan of folder mode, in its own process
     s.add_argument("job", help=argparse.SUPPRESS)
     return parser
@@ -145,9 +149,10 @@ def same_file(a: os.PathLike | str, b: os.PathLike | str) -> bool:
 
 
 def check_outputs(inputs: list[pathlib.Path], outputs: dict[str, pathlib.Path], overwrite: bool,
-                  hint: str = "--overwrite replaces it") -> None:
+                  hint: str = "--overwrite replaces it", replaceable=()) -> None:
     """FileFormatError (exit 2) if an output is one of the inputs, two outputs are one file, or an output
-    exists and overwrite is false (the message ends with `hint`). outputs: {what it is: path}."""
+    not in `replaceable` exists and overwrite is false (the message ends with `hint`). outputs: {what it
+    is: path}."""
     from .core.exceptions import FileFormatError
 
     items = list(outputs.items())
@@ -161,7 +166,7 @@ def check_outputs(inputs: list[pathlib.Path], outputs: dict[str, pathlib.Path], 
                 raise FileFormatError(f"refusing to write {out}: it would be both the {what} and the {other}")
     if not overwrite:
         for what, out in items:
-            if out.exists():
+            if out.exists() and out not in replaceable:
                 raise FileFormatError(f"refusing to replace {out} ({what} of an earlier run); {hint}")
 
 
@@ -199,6 +204,19 @@ def check_writable(outputs: dict[str, pathlib.Path]) -> None:
             raise FileFormatError(f"cannot write {out} ({what}): {exc.strerror or exc}") from None
 
 
+def failed_before(outputs: dict[str, pathlib.Path]) -> set:
+    """{the report} when the only output there is a report.json of a run that failed or was interrupted:
+    it holds an error, no result, so a run after the input is mended may replace it without --overwrite."""
+    report = outputs["report"]
+    if any(path.exists() for what, path in outputs.items() if what != "report"):
+        return set()
+    try:
+        status = json.loads(report.read_text()).get("status")
+    except (OSError, ValueError, AttributeError):
+        return set()
+    return {report} if status in ("failed", "interrupted") else set()
+
+
 def file_sha256(path: os.PathLike | str) -> str:
     """sha256 of a file's bytes, read in 1 MB blocks."""
     digest = hashlib.sha256()
@@ -233,15 +251,15 @@ def run_adapt(scan_path, landmarks_path, out_dir, levels=None, calibration="auto
     Refuses (FileFormatError) an output that is an input and, unless overwrite, any existing result;
     with overwrite the earlier results are deleted first. Any failure after that leaves report.json
     with "status": "failed" and the error (and no result beside it), then raises."""
-    from . import __version__
-    from .core import meshio
+    from .core import __version__, meshio
     from .core.adapt import outcome as outcome_text
     from .core.exceptions import FileFormatError, HeadAdaptError
 
     t0 = time.perf_counter()
     out_dir = pathlib.Path(out_dir)
     outputs = result_paths(out_dir, blend, preview)
-    check_outputs([pathlib.Path(scan_path), pathlib.Path(landmarks_path)], outputs, overwrite)
+    check_outputs([pathlib.Path(scan_path), pathlib.Path(landmarks_path)], outputs, overwrite,
+                  replaceable=failed_before(outputs))
     if preview and pathlib.Path(preview).suffix.lower() != ".png":
         raise FileFormatError(f"--preview {preview}: the preview is a PNG image, name a .png file")
     if blend and pathlib.Path(blend).suffix.lower() != ".blend":
@@ -349,7 +367,7 @@ def _adapt_and_write(record, verts, tris, points, markers, outputs, levels, cali
     meshio.write_obj(outputs["adapted OBJ"], result.verts_scan, tpl.skin.tris,
                      header="HeadAdapt adapted skin, template vertex order, scan frame and unit")
     for lv in result.levels:
-        log(f"  level {lv.level}: {lv.method:5s} {lv.pairs:5d} pairs  E_d {lv.E_d:8.3f} mm^2  "
+        log(f"  level {lv.level}: {lv.method:6s} {lv.pairs:5d} pairs  E_d {lv.E_d:8.3f} mm^2  "
             f"RMS {lv.E_d_rms_mm:6.3f} mm  E {lv.E:8.3f}  {lv.seconds:6.2f} s")
     clustered = result.calibration_info.get("scan_clustered")
     if clustered:
@@ -539,7 +557,7 @@ def kept_result(job: dict, template_sha256: str) -> dict | None:
     """folder --resume: the summary entry of a scan an earlier run into the same folder finished (report.json
     "done", every output of this run's options there) from the same scan and landmark bytes, template,
     HeadAdapt version and options as this run would use, marked "kept"; None if it is to run again."""
-    from . import __version__
+    from .core import __version__
 
     out_dir = pathlib.Path(job["out_dir"])
     try:

@@ -5,3 +5,5 @@ template, mpeg4 (the standard's tables), meshio, readers, fapfile (files), limit
 No module here imports bpy; only the spatial backend "bvh" (mesh.spatial.MeshQuery, chosen by the
 caller) loads Blender's mathutils, when asked for.
 """
+
+__version__ = "0.1.0"        # HeadAdapt's, as blender_manifest.toml gives it (report.json records it)

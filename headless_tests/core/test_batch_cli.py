@@ -232,8 +232,17 @@ def test_clicks_in_another_unit_exit_2_naming_the_landmark_file(tmp_path, inputs
     mm = tmp_path / "in" / "clicks_mm.json"
     mm.write_text(json.dumps({"points": {k: [1000 * c for c in p] for k, p in points.items()}}))
     line = one_error_line(batch("adapt", "--scan", scan, "--landmarks", mm, "--out", tmp_path / "out"))
-    assert line.startswith(f"headadapt: error: {mm}: FDP ") and "about 10^3 times larger than the scan" in line, line
+    assert line.startswith(f"headadapt: error: {mm}: The landmarks are about 10^3 times larger than the scan: "
+                           "they are in another unit"), line
+    assert "(FDP " in line and "in the template's frame)" in line, line
     assert json.loads((tmp_path / "out" / "report.json").read_text())["status"] == "failed"
+    # the clicks mended, the run again into the same folder: the failed report held no result, so it is
+    # replaced without --overwrite; a result is not
+    again = batch("adapt", "--scan", scan, "--landmarks", marks, "--out", tmp_path / "out", "--levels", "1")
+    assert again.returncode in (0, 3), again.stderr
+    assert json.loads((tmp_path / "out" / "report.json").read_text())["status"] == "done"
+    third = batch("adapt", "--scan", scan, "--landmarks", marks, "--out", tmp_path / "out", "--levels", "1")
+    assert third.returncode == 2 and "refusing to replace" in third.stderr
 
 
 def test_levels_out_of_range_are_refused_before_anything_is_read(tmp_path, inputs):

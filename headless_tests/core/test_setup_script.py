@@ -24,3 +24,15 @@ def test_ha_says_in_one_line_that_the_disk_is_too_full_and_creates_nothing(tmp_p
     lines = proc.stderr.strip().splitlines()
     assert len(lines) == 1 and str(venv) in lines[0] and "500 MB free" in lines[0], lines
     assert "ran" not in proc.stdout and not venv.exists()
+
+
+def test_ha_python_runs_in_the_caller_s_folder_with_the_package_importable(tmp_path):
+    """`./ha python -m headadapt_addon.batch adapt --scan head.ply ...` typed beside the scan: a relative
+    path means the caller's folder (./ha used to run everything from the checkout: "head.ply: no
+    such file")."""
+    (tmp_path / "head.ply").write_bytes(b"ply\n")
+    code = "import os, headadapt_addon; print(os.path.exists('head.ply'), headadapt_addon.__file__)"
+    proc = subprocess.run(["bash", str(ROOT / "ha"), "python", "-c", code], cwd=tmp_path, capture_output=True,
+                          text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.split() == ["True", str(ROOT / "headadapt_addon" / "__init__.py")]

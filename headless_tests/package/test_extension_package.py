@@ -205,6 +205,13 @@ def _platform_of(wheel):
     return f"{system}-{arch}"
 
 
+def test_the_package_s_version_is_the_manifest_s():
+    """report.json records headadapt_addon.__version__, and folder --resume keeps only results of the same
+    version: it must move with the extension's version."""
+    import headadapt_addon
+    assert headadapt_addon.__version__ == MANIFEST["version"]
+
+
 def test_this_blender_and_its_python_are_inside_what_the_extension_supports():
     import bpy
 

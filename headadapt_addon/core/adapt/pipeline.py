@@ -91,7 +91,8 @@ def _adapt(tpl, scan_verts, scan_tris, scan_fdps, options, markers, progress, ca
     unfolding = Unfolding(fit)
     cur, unfolded = unfolding(fit.current())
     cur, _, errs = judge(cur)
-    levels = [Level(0, "rbf", len(P), len(P), *errs, time.perf_counter() - t0 - unfolding.last)]
+    method = "affine" if options.affine_iterations > 0 else "rbf" if options.affine_iterations == 0 else "none"
+    levels = [Level(0, method, len(P), len(P), *errs, time.perf_counter() - t0 - unfolding.last)]
     best, best_verts, best_funcs, best_unfolded = 0, cur, list(fit.functions), unfolded
 
     # the feature mesh over the FDPs in use (its template side is where they sit on the deformed template)
@@ -232,11 +233,13 @@ def _refuse_far(names: list[str], dist: np.ndarray, where: str, options: AdaptOp
     """LandmarkError naming the first FDP farther than options.off_surface_mm (ears: twice that), with
     hint()'s sentence (calibration.unit_hint) if any."""
     for k, d in zip(names, dist):
-        limit = options.off_surface_mm * (2 if k in ("3.5", "3.6") else 1)
-        if d * MM > limit:
-            said = hint() if hint else ""
-            raise LandmarkError(f"FDP {k} ({mpeg4.FDPS[k].label}) is {d * MM:.{'1f' if d * MM < 1e6 else '3g'}} mm {where} after calibration: "
-                                "landmarks must be picked on this scan (wrong file or unit?)" + (f"; {said}" if said else ""))
+        if d * MM > options.off_surface_mm * (2 if k in ("3.5", "3.6") else 1):
+            said, far = hint() if hint else "", f"{d * MM:.{'1f' if d * MM < 1e6 else '3g'}} mm {where}"
+            if said:            # the unit first: a distance in the template's frame says little then
+                raise LandmarkError(f"{said[0].upper()}{said[1:]} (FDP {k}, {mpeg4.FDPS[k].label}, is {far} "
+                                    "in the template's frame)")
+            raise LandmarkError(f"FDP {k} ({mpeg4.FDPS[k].label}) is {far} after calibration: landmarks must be "
+                                "picked on this scan (wrong file or unit?)")
 
 
 class Unfolding:
