@@ -1024,6 +1024,10 @@ def cut_skull(T, skull):
     cut |= (reg_q == R["mouth_interior"]).any(axis=1)
     cut |= mouth & (z > fdp["9.9"][2] - 0.003) & (z < fdp["9.8"][2] + 0.003)
     jaw = np.isin(reg_q, [R["chin_jaw"], R["lower_lip"]]).sum(axis=1) >= 3
+    # the band where the chin meets the neck (a quad with a chin corner, the rest neck) is the jaw's
+    # underside too: left in the cranium it stayed put when the jaw opened and came out through the
+    # chin's skin (up to 10 mm on adapted heads at open_jaw)
+    jaw |= np.isin(reg_q, [R["chin_jaw"]]).any(axis=1) & np.isin(reg_q, [R["chin_jaw"], R["neck"]]).all(axis=1)
     # tidy the cut: a few stray quads at the lateral canthi would leave pin holes in the orbit's
     # rim, and slivers at the mouth corners would be bone islands; fill the one, drop the other
     label, size = quad_components(quads, cut)
