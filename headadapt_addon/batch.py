@@ -375,8 +375,8 @@ def _adapt_and_write(record, verts, tris, points, markers, outputs, levels, cali
             f"{clustered['kept']:,} vertices")
     welded = result.calibration_info.get("scan_welded")
     if welded:
-        log(f"  the scan's triangles each had their own corners (a triangle soup): {welded['vertices']:,} -> "
-            f"{welded['kept']:,} vertices, welded where they coincide")
+        log(f"  the scan's triangles did not share their corners (split vertices, a triangle soup): "
+            f"{welded['vertices']:,} -> {welded['kept']:,} vertices, welded where they coincide")
     if result.calibration_info.get("scan_pieces_turned"):
         log(f"  {result.calibration_info['scan_pieces_turned']} scan piece(s) faced inward: read turned round")
     if result.unfolded and result.unfolded["folded_triangles"]:

@@ -163,7 +163,7 @@ def calibrate(tpl: Template, scan_verts: np.ndarray, scan_tris: np.ndarray, scan
     given = {k: v for k, v in given.items() if k in tpl_fdps}
     given, handed = calibration.check_handedness(given, tpl_fdps)
     sim, info = calibration.calibrate(given, tpl_fdps, method=options.calibration)
-    welded = simplify.weld_if_soup(scan_verts, scan_tris)        # a triangle soup's corners welded
+    welded = simplify.weld_if_split(scan_verts, scan_tris)       # corners an exporter split, welded
     if welded is not None:
         info = {**info, "scan_welded": {"vertices": len(scan_verts), "kept": len(welded[0])}}
         scan_verts, scan_tris = welded
