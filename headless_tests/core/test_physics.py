@@ -87,10 +87,16 @@ def test_every_control_moves_the_face_locally(tpl, model):
     v0 = tpl.skin.verts
     for name, (dofs, _) in model.forces.items():     # each muscle pulls a patch, not a point
         assert len(dofs) >= 5, (name, len(dofs))
+    brows = v0[:, 2] > max(tpl.fdp_points()["4.1"][2], tpl.fdp_points()["4.2"][2])
     for name in model.controls:
         d = np.linalg.norm(model.equilibrium({name: 0.5}) - v0, axis=1)
         assert 0.2e-3 < d.max() < 0.03, (name, d.max())
-        assert np.mean(d > 0.5e-3) < 0.35, name
+        # a muscle pulls a patch; the jaw, a bone, carries the chin, the lips, the mouth's inside and the
+        # skin under the chin (0.40 of the skin since the mandible holds the chin's border with the neck,
+        # 0.31 before), and next to nothing above the brows (0.51 mm; 0.20 before)
+        assert np.mean(d > 0.5e-3) < (0.42 if name == "jaw_open" else 0.35), name
+        if name == "jaw_open":
+            assert d[brows].max() < 1e-3, d[brows].max()
 
 
 def test_jaw_opens_the_mouth_and_lids_close_the_eye(tpl, model):
