@@ -139,7 +139,7 @@ def _keyed_name(data_path):
 
 
 HEAD_REST = "headadapt_head_rest"        # the root's matrix_basis before a .fap first turned it
-ROTATIONS = {"rotation_euler": 3, "rotation_quaternion": 4, "rotation_axis_angle": 4}
+ROTATIONS = ("rotation_euler", "rotation_quaternion", "rotation_axis_angle")
 
 
 def head_rotation(root, anim, frames):

@@ -83,12 +83,10 @@ def weld_close(verts, tris, tol):
     count, label = csgraph.connected_components(graph, directed=False)
     first = np.full(count, n)
     np.minimum.at(first, label, np.arange(n))
-    order = np.argsort(first)
-    rank = np.empty(count, np.int64)
-    rank[order] = np.arange(count)
-    welded = rank[label][tris]
+    # each vertex moved onto its group's first, the exact weld then merges each group into it, in order
+    verts, welded = geometry.weld(verts[first[label]], tris)
     keep = (welded[:, 0] != welded[:, 1]) & (welded[:, 1] != welded[:, 2]) & (welded[:, 0] != welded[:, 2])
-    return verts[first[order]], welded[keep]
+    return verts, welded[keep]
 
 
 def cluster_if_finer(verts, tris, cell):
