@@ -21,8 +21,9 @@ def test_no_right_click_is_dropped_on_fifty_heads(tpl, testheads):
     for seed in range(200, 250):
         head = _light(testheads, seed)
         res = adapt.adapt(tpl, head.scan_verts, head.scan_tris, head.clicks_8, adapt.AdaptOptions(max_levels=0))
-        if res.flagged or res.calibration_info["handedness"]["swapped"]:
-            flagged[seed] = (res.flagged, res.calibration_info["handedness"]["swapped"])
+        handed = res.calibration_info["handedness"]
+        if res.flagged or handed["swapped"] or handed["relabelled"]:
+            flagged[seed] = (res.flagged, handed["swapped"], handed["relabelled"])
     assert not flagged, flagged
 
 
@@ -58,3 +59,21 @@ def test_labels_from_the_viewer_s_side_are_put_right_and_named(tpl, testheads):
     res = adapt.adapt(tpl, head.scan_verts, head.scan_tris, swapped, adapt.AdaptOptions(max_levels=0))
     assert res.calibration_info["handedness"]["all"] and not res.dropped
     assert any("viewer's side" in w for w in res.outcome["warnings"])
+
+
+@pytest.mark.parametrize("a, b", [("3.7", "3.8"), ("3.11", "3.7"), ("8.4", "2.10")])
+def test_two_labels_exchanged_are_put_back_and_named(tpl, testheads, a, b):
+    """Two labels that are not a left/right pair exchanged (one eye's outer corner and the other's
+    inner, one eye's corners, a mouth corner and the chin): both clicks agree with the scan, so
+    neither is dropped; the labels are put back and the fit is the one from the right labels."""
+    head = _light(testheads, 254)
+    clicks = dict(head.clicks_8)
+    clicks[a], clicks[b] = head.clicks_8[b], head.clicks_8[a]
+    options = adapt.AdaptOptions(max_levels=0)
+    res = adapt.adapt(tpl, head.scan_verts, head.scan_tris, clicks, options)
+    right = adapt.adapt(tpl, head.scan_verts, head.scan_tris, head.clicks_8, options)
+    handed = res.calibration_info["handedness"]
+    assert sorted(map(sorted, handed["relabelled"])) == [sorted((a, b))] and not handed["swapped"]
+    assert not res.dropped and not right.dropped
+    assert any(f"FDP {min(a, b)}" in w and "look swapped" in w for w in res.outcome["warnings"])
+    np.testing.assert_array_equal(res.verts, right.verts)

@@ -137,18 +137,21 @@ def _rms(scan_fdps, template_fdps, names):
 
 
 def check_handedness(scan_fdps, template_fdps):
-    """Left/right labels that look swapped: (relabelled FDPs, {"swapped": [(a, b)], "all": bool}).
+    """Labels that look swapped: (relabelled FDPs, {"swapped": [(a, b)], "all": bool, "relabelled": [(a, b)]}).
 
     People often label from the viewer's side: then every left/right pair is swapped, and the clicks
     are the mirror image of the template's FDPs (so is a mirrored scan with its own labels; the
-    caller can tell them apart by the scan's winding). Each mirror pair whose swap at least halves
-    the least-squares calibration residual is swapped back, all pairs at once first, then one by
-    one. Needs at least 4 FDPs besides the pair; returns the input unchanged when nothing helps."""
+    caller can tell them apart by the scan's winding). All left/right pairs at once are tried first;
+    then, one at a time and the best first, any two labels (a left/right pair goes to "swapped", two
+    other FDPs, such as one eye's outer corner and the other's inner, to "relabelled"): a swap is
+    made only if it at least halves the least-squares calibration residual. Needs at least 4 FDPs
+    besides the pair; returns the input unchanged when nothing helps."""
     common = [k for k in scan_fdps if k in template_fdps]
     pairs = sorted({tuple(sorted((k, mpeg4.FDPS[k].mirror))) for k in common
                     if mpeg4.FDPS[k].mirror in scan_fdps and mpeg4.FDPS[k].mirror in template_fdps})
-    if not pairs or len(common) < MIN_FDPS + 1:
-        return dict(scan_fdps), {"swapped": [], "all": False}
+    none = {"swapped": [], "all": False, "relabelled": []}
+    if len(common) < MIN_FDPS + 1:
+        return dict(scan_fdps), none
 
     def swap(points, which):
         out = dict(points)
@@ -156,16 +159,24 @@ def check_handedness(scan_fdps, template_fdps):
             out[a], out[b] = points[b], points[a]
         return out
 
-    base = _rms(scan_fdps, template_fdps, common)
-    everything = swap(scan_fdps, pairs)
-    if _rms(everything, template_fdps, common) < SWAP_GAIN * base:
-        return everything, {"swapped": [list(p) for p in pairs], "all": True}
-    fixed, done = dict(scan_fdps), []
-    for pair in pairs:
-        trial = swap(fixed, [pair])
-        if _rms(trial, template_fdps, common) < SWAP_GAIN * _rms(fixed, template_fdps, common):
-            fixed, done = trial, done + [list(pair)]
-    return fixed, {"swapped": done, "all": False}
+    rms = _rms(scan_fdps, template_fdps, common)
+    if pairs:
+        everything = swap(scan_fdps, pairs)
+        if _rms(everything, template_fdps, common) < SWAP_GAIN * rms:
+            return everything, {**none, "swapped": [list(p) for p in pairs], "all": True}
+    fixed, found = dict(scan_fdps), dict(none)
+    candidates = [(a, b) for i, a in enumerate(sorted(common)) for b in sorted(common)[i + 1:]]
+    while candidates:
+        trials = [_rms(swap(fixed, [pair]), template_fdps, common) for pair in candidates]
+        best = int(np.argmin(trials))
+        if not trials[best] < SWAP_GAIN * rms:
+            break
+        pair = candidates.pop(best)
+        fixed, rms = swap(fixed, [pair]), trials[best]
+        key = "swapped" if pair in pairs else "relabelled"
+        found[key] = found[key] + [list(pair)]
+        candidates = [c for c in candidates if not set(c) & set(pair)]
+    return fixed, found
 
 
 def validate_landmarks(points: dict, need: tuple = (), what: str = "scan") -> dict[str, np.ndarray]:

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from .. import mpeg4
 from ..tol import MM
 from . import calibration
 from .fit import Fit, Pairs
@@ -57,7 +58,9 @@ def handedness_notes(handed: dict, flipped: int) -> list[str]:
                     "head with the person's own sides"]
         return ["left and right FDP labels look swapped (clicked from the viewer's side?): "
                 "every left/right pair was swapped back (" + ", ".join("/".join(p) for p in handed["swapped"]) + ")"]
-    return [f"FDP {a} and FDP {b} look swapped (left/right): swapped back" for a, b in handed["swapped"]]
+    return ([f"FDP {a} and FDP {b} look swapped (left/right): swapped back" for a, b in handed["swapped"]]
+            + [f"FDP {a} ({mpeg4.FDPS[a].label}) and FDP {b} ({mpeg4.FDPS[b].label}) look swapped: their labels "
+               "were exchanged" for a, b in handed.get("relabelled", [])])
 
 
 # FDPs a closed mouth puts within a few millimetres of each other: the upper/lower inner lip points,
