@@ -377,6 +377,13 @@ def _adapt_and_write(record, verts, tris, points, markers, outputs, levels, cali
     if welded:
         log(f"  the scan's triangles did not share their corners (split vertices, a triangle soup): "
             f"{welded['vertices']:,} -> {welded['kept']:,} vertices, welded where they coincide")
+    info = result.calibration_info
+    if info.get("scan_triangles_repeated"):
+        log(f"  {info['scan_triangles_repeated']:,} of the scan's triangles were written twice (a double-sided "
+            "export?): dropped")
+    if info.get("scan_triangles_turned"):
+        log(f"  {info['scan_triangles_turned']:,} of the scan's triangles were wound against their neighbours: "
+            "turned to match")
     if result.calibration_info.get("scan_pieces_turned"):
         log(f"  {result.calibration_info['scan_pieces_turned']} scan piece(s) faced inward: read turned round")
     if result.unfolded and result.unfolded["folded_triangles"]:
