@@ -122,7 +122,10 @@ def build_parser():
                         "the rest (an interrupted or failed run, new scans added to the folder)")
     common(f)
     d = sub.add_parser("demo", help="adapt the bundled template onto the bundled sample scan")
-    d.add_argument("--out", default=str(ROOT / "out" / "demo"), help="output folder (default out/demo)")
+    # in a checkout out/demo; an installed extension's own folder is replaced by its next update
+    here = ROOT / "out" / "demo" if (ROOT / "ha").exists() else pathlib.Path.cwd() / "headadapt_demo"
+    d.add_argument("--out", default=str(here),
+                   help="output folder (default out/demo in a checkout, else headadapt_demo where it is run)")
     common(d, demo=True)
     s = sub.add_parser("_scan")                      # one scan of folder mode, in its own process
     s.add_argument("job", help=argparse.SUPPRESS)

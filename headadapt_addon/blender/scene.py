@@ -157,3 +157,20 @@ def head_root(context):
     roots = {o.get("headadapt_part"): o for o in context.scene.objects if o.get("headadapt_part") in
              ("result_root", "root")}
     return roots.get("result_root") or roots.get("root")
+
+
+def adopt_tagged(sc):
+    """A scene whose HeadAdapt settings are empty but which holds a result the batch wrote (tagged
+    objects, no settings: the batch runs without the add-on): its result, report and scan (the one
+    mesh carrying its landmarks) set, so the panels show them and their buttons act on them."""
+    s = sc.headadapt
+    if s.result_root is None:
+        roots = [o for o in sc.objects if o.get("headadapt_part") == "result_root"]
+        if len(roots) == 1:
+            s.result_root = roots[0]
+            if not s.report_json and "headadapt_report" in roots[0]:
+                s.report_json = roots[0]["headadapt_report"]
+    if s.scan is None:
+        scans = [o for o in sc.objects if o.type == "MESH" and "headadapt_landmarks" in o]
+        if len(scans) == 1:
+            s.scan = scans[0]

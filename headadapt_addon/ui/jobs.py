@@ -67,11 +67,18 @@ def busy():
     return _RUNNING[0].what if _RUNNING else ""
 
 
-def drop_all():
+def drop_all(wm=None):
     """Cancel every running job and forget them (another file loaded, the add-on unregistered: their
-    modal operators are gone, and nothing would end them)."""
+    modal operators are gone, and nothing would end them); with the window manager, their timers, the
+    progress cursor and the status bar's text go too."""
     for run in _RUNNING:
         run.job.cancel()
+        if wm is not None:
+            if getattr(run, "timer", None) is not None:
+                wm.event_timer_remove(run.timer)
+            wm.progress_end()
+            for window in wm.windows:
+                window.workspace.status_text_set(None)
     _RUNNING.clear()
 
 
@@ -159,7 +166,7 @@ class Modal:
         self._run = run
         wm = context.window_manager
         wm.progress_begin(0, 100)
-        self._timer = wm.event_timer_add(0.25, window=context.window)
+        self._timer = run.timer = wm.event_timer_add(0.25, window=context.window)
         wm.modal_handler_add(self)
         _RUNNING.append(run)
         run.job.start()

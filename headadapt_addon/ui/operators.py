@@ -658,9 +658,15 @@ _register_classes, _unregister_classes = bpy.utils.register_classes_factory(clas
 @bpy.app.handlers.persistent
 def _forget_kept(*_args):
     """Another file loaded: its scans are others (and the memory is freed); a running Adapt or Bake,
-    whose operator the load ended, is cancelled (else its buttons would stay greyed)."""
+    whose operator the load ended, is cancelled (else its buttons would stay greyed), and a progress
+    line the file was saved with (during an Adapt) is cleared. A .blend the batch wrote (no settings:
+    the batch runs without the add-on) gets its scan, result and report in the panels."""
     kept.forget()
-    jobs.drop_all()
+    jobs.drop_all(bpy.context.window_manager)
+    for sc in bpy.data.scenes:
+        if getattr(sc, "headadapt", None) is not None:
+            sc.headadapt.progress_text = ""
+            scene.adopt_tagged(sc)
 
 
 def register():
@@ -672,5 +678,12 @@ def unregister():
     if _forget_kept in bpy.app.handlers.load_post:
         bpy.app.handlers.load_post.remove(_forget_kept)
     kept.forget()
-    jobs.drop_all()
+    try:                           # (Blender quitting, or disabling at start: no data to reach)
+        wm, scenes = bpy.context.window_manager, list(bpy.data.scenes)
+    except AttributeError:
+        wm, scenes = None, []
+    jobs.drop_all(wm)
+    for sc in scenes:              # the setting outlives the add-on in the file: no stale progress line
+        if getattr(sc, "headadapt", None) is not None:
+            sc.headadapt.progress_text = ""
     _unregister_classes()

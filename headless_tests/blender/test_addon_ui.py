@@ -78,6 +78,23 @@ def test_landmarks_survive_save_and_reload(addon, tpl, tmp_path):
         np.testing.assert_array_equal(back[k], pts[k])
 
 
+def test_a_progress_line_saved_during_a_run_is_gone_on_opening_and_on_re_enabling(addon, tmp_path):
+    """A file saved while Adapt ran (Ctrl-S, autosave) kept "HeadAdapt: 7% level 0 ..." in its panel for
+    good, and so did a scene whose add-on was disabled and enabled again during a run."""
+    import bpy
+
+    stale = "HeadAdapt: 7% level 0: the global map onto the scan and the clicks"
+    bpy.context.scene.headadapt.progress_text = stale
+    path = tmp_path / "saved_mid_adapt.blend"
+    bpy.ops.wm.save_as_mainfile(filepath=str(path))
+    bpy.ops.wm.open_mainfile(filepath=str(path))
+    assert bpy.context.scene.headadapt.progress_text == ""
+    bpy.context.scene.headadapt.progress_text = stale
+    headadapt_addon.unregister()
+    headadapt_addon.register()
+    assert bpy.context.scene.headadapt.progress_text == ""
+
+
 class _Recorder:
     """Stands in for UILayout: records every call, returns itself for sub-layouts."""
 

@@ -265,6 +265,15 @@ def test_batch_writes_a_blend_that_reopens_with_the_report(tmp_path):
     assert int(keys[5]) >= 6 * 30
     # ARKit's 52, each under its exact name (none missing, none lowercased), the gaze turning the eye
     assert "ARKIT [] [] True False" in res.stdout, res.stdout
+    # opened where the add-on is enabled, the panels show the batch's scan, result and report, and their
+    # display buttons act on it (before: "Pick the scanned head", "Adapt first", FDPs never shown)
+    adopt = ("import bpy, sys, headadapt_addon; headadapt_addon.register();"
+             "bpy.ops.wm.open_mainfile(filepath=sys.argv[1]); s = bpy.context.scene.headadapt;"
+             "print('ADOPT', s.result_root and s.result_root.name, s.scan and s.scan.name, len(s.report_json) > 100);"
+             "s.show_fdps = True;"
+             "print('FDPS', sum(not o.hide_get() for o in s.result_root.children_recursive if 'headadapt_fdp' in o))")
+    res = subprocess.run([sys.executable, "-c", adopt, str(out / "head.blend")], capture_output=True, text=True)
+    assert "ADOPT HA Adapted head scan True" in res.stdout and "FDPS 82" in res.stdout, res.stdout + res.stderr
 
 
 @pytest.mark.slow

@@ -281,3 +281,16 @@ def test_folder_limits_that_would_fail_every_scan_are_refused_before_anything_ru
     proc = batch("folder", "--folder", scan.parent, "--out", tmp_path / "out", *arg)
     assert proc.returncode == 2 and f"argument {arg[0]}: {arg[1]} is not" in proc.stderr, proc.stderr
     assert not (tmp_path / "out").exists()
+
+
+def test_the_demo_writes_beside_the_user_not_into_an_installed_extension(tmp_path, monkeypatch):
+    """Run from an installed extension (no ./ha beside the package), demo wrote into the extension's
+    own folder, which Blender deletes on the next update; in a checkout it keeps out/demo."""
+    from headadapt_addon import batch
+
+    assert batch.build_parser().parse_args(["demo"]).out == str(batch.ROOT / "out" / "demo")
+    installed = tmp_path / "extensions" / "user_default" / "headadapt"
+    (installed / "headadapt_addon").mkdir(parents=True)
+    monkeypatch.setattr(batch, "ROOT", installed)
+    monkeypatch.chdir(tmp_path)
+    assert batch.build_parser().parse_args(["demo"]).out == str(tmp_path / "headadapt_demo")
