@@ -13,3 +13,10 @@ def pool():
         from concurrent.futures import ThreadPoolExecutor
         _POOL.append(ThreadPoolExecutor(max_workers=3, thread_name_prefix="headadapt"))
     return _POOL[0]
+
+
+def shutdown():
+    """Let the pool's idle threads end (the add-on disabled); the next pool() makes a new one.
+    Work still queued runs to its end first, on its own threads: nothing waits here."""
+    while _POOL:
+        _POOL.pop().shutdown(wait=False)

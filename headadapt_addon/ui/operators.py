@@ -14,7 +14,7 @@ from bpy_extras.io_utils import ExportHelper, ImportHelper
 
 from ..blender import bridge, landmarks, scene
 from ..blender.scene import head_root
-from ..core import mpeg4
+from ..core import mpeg4, threads
 from ..core.adapt.options import MAX_LEVELS
 from ..core.exceptions import HeadAdaptError
 from . import jobs, kept
@@ -683,6 +683,7 @@ def unregister():
     except AttributeError:
         wm, scenes = None, []
     jobs.drop_all(wm)
+    threads.shutdown()             # (the fit's worker threads: none left behind by a disabled add-on)
     for sc in scenes:              # the setting outlives the add-on in the file: no stale progress line
         if getattr(sc, "headadapt", None) is not None:
             sc.headadapt.progress_text = ""

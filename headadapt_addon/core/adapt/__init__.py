@@ -8,6 +8,14 @@ it ended; calibration, rbf, metrics, suggest: the paper's building blocks.
 """
 
 from .options import AdaptOptions, AdaptResult, Level
-from .pipeline import adapt
 
 __all__ = ["AdaptOptions", "AdaptResult", "Level", "adapt"]
+
+
+def __getattr__(name):
+    """``adapt`` imported when first asked for: the add-on's registration (Blender's start) needs the
+    options only, not the pipeline and scipy behind it."""
+    if name == "adapt":
+        from .pipeline import adapt
+        return adapt
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
