@@ -296,7 +296,8 @@ def run_adapt(scan_path, landmarks_path, out_dir, levels=None, calibration="auto
             record.update(status="failed", error=f"{scan_path}: internal error: {type(exc).__name__}: {exc}",
                           traceback=traceback.format_exc())
         if out_dir.is_dir():
-            try:
+            try:                          # what this run wrote before it failed is no result: gone
+                remove_results(path for name, path in outputs.items() if name != "report")
                 meshio.write_atomic(outputs["report"], json.dumps(record, indent=1))
             except FileFormatError:
                 pass                      # the original error is the one to report
@@ -367,7 +368,17 @@ def _adapt_and_write(record, verts, tris, points, markers, outputs, levels, cali
         "stage_seconds": {**record["stage_seconds"], **result.stages},    # read, then the adaptation's
         "warnings": outcome_text.warning_lines(result.outcome, result.flagged, result.dropped),
     }
-    meshio.write_obj(outputs["adapted OBJ"], result.verts_scan, tpl.skin.tris,
+    skin, anatomy = result.verts_scan, None
+    if "--blend file" in outputs:
+        # the OBJ is the .blend's skin: the anatomy's transfer seats the eye sockets' hidden lining on the
+        # eyes and lifts visible skin off the bone (the fit's skin differed by up to 7.7 mm in the lining)
+        from .core.anatomy import transfer
+
+        t_transfer = time.perf_counter()
+        anatomy = transfer(tpl, result)
+        report["stage_seconds"]["transfer"] = time.perf_counter() - t_transfer
+        skin = result.to_scan(anatomy.parts["skin"])
+    meshio.write_obj(outputs["adapted OBJ"], skin, tpl.skin.tris,
                      header="HeadAdapt adapted skin, template vertex order, scan frame and unit")
     for lv in result.levels:
         log(f"  level {lv.level}: {lv.method:6s} {lv.pairs:5d} pairs  E_d {lv.E_d:8.3f} mm^2  "
@@ -392,21 +403,39 @@ def _adapt_and_write(record, verts, tris, points, markers, outputs, levels, cali
     if result.unfolded and result.unfolded["folded_triangles"]:
         log(f"  {result.unfolded['folded_triangles']} folded triangles relaxed "
             f"({result.unfolded['vertices_relaxed']} vertices), {result.unfolded['folded_left']} left")
+    stages = report["stage_seconds"]          # each stage once: the .blend's own time without its bake
     if "--preview image" in outputs:
+        t_preview = time.perf_counter()
         _write_preview(outputs["--preview image"], tpl, result, verts, tris, points, report, log)
+        stages["preview"] = time.perf_counter() - t_preview
     if "--blend file" in outputs:
         t_blend = time.perf_counter()
-        _write_blend(outputs["--blend file"], tpl, result, verts, tris, points, report, log)   # + transfer, bake
-        report["stage_seconds"]["blend"] = time.perf_counter() - t_blend
+        _write_blend(outputs["--blend file"], tpl, result, verts, tris, points, report, log, anatomy)   # + bake
+        stages["blend"] = time.perf_counter() - t_blend - stages.get("bake", 0.0)
     report["total_seconds"] = time.perf_counter() - t0
     meshio.write_atomic(outputs["report"], json.dumps(report, indent=1, default=float))
     return report
 
 
+def _blendout():
+    """blender.blendout, whose import starts Blender (bpy), with Ctrl-C and SIGTERM held until it has
+    started: a SIGINT in Blender's start-up scripts crashed the process (segfault), leaving report.json
+    "running". A signal that came meanwhile is delivered right after, as a KeyboardInterrupt."""
+    hold = getattr(signal, "pthread_sigmask", None)            # (not on Windows)
+    mask = hold(signal.SIG_BLOCK, {signal.SIGINT, signal.SIGTERM}) if hold else None
+    try:
+        from .blender import blendout
+    finally:
+        if hold:
+            hold(signal.SIG_SETMASK, mask)
+    return blendout
+
+
 def _write_preview(path, tpl, result, verts, tris, points, report, log=print):
     """The preview PNG through blendout (bpy); Blender's failure to render or save names the file."""
-    from .blender import blendout
     from .core.exceptions import FileFormatError
+
+    blendout = _blendout()
 
     try:
         blendout.write_preview(path, tpl, result, verts, tris, points, report)
@@ -415,11 +444,12 @@ def _write_preview(path, tpl, result, verts, tris, points, report, log=print):
     log(f"headadapt: preview (scan beside the head with its heat map, front and side) in {path}")
 
 
-def _write_blend(path, tpl, result, verts, tris, points, report, log=print):
+def _write_blend(path, tpl, result, verts, tris, points, report, log=print, anatomy=None):
     """The .blend through blendout (the only place the batch job imports bpy); Blender's failure to
     save (a full disk, a folder it cannot write) becomes a FileFormatError naming the file."""
-    from .blender import blendout
     from .core.exceptions import FileFormatError
+
+    blendout = _blendout()
 
     try:
         shown = [-1]
@@ -430,7 +460,7 @@ def _write_blend(path, tpl, result, verts, tris, points, report, log=print):
                 shown[0] = tenth
                 log(f"  baking {100 * fraction:5.1f}%  {name}")
 
-        blendout.write_blend(path, tpl, result, verts, tris, points, report, progress=baking)
+        blendout.write_blend(path, tpl, result, verts, tris, points, report, progress=baking, anatomy=anatomy)
     except RuntimeError as exc:            # bpy.ops report failures as RuntimeError
         raise FileFormatError(f"cannot write {path}: {str(exc).strip()}") from None
 
@@ -639,6 +669,9 @@ def _adapt_exit_code(scan, landmarks, out, levels, calibration, keep_flagged, bl
     except MemoryError:
         _stderr(f"headadapt: error: {scan}: out of memory{memory_hint}")
         return EXIT_BUG
+    except KeyboardInterrupt:             # Ctrl-C, SIGTERM: one line, no traceback; report.json says so
+        _stderr(f"headadapt: interrupted: {scan} not adapted (its report.json says so; run it again to redo it)")
+        return EXIT_INTERRUPTED
     except Exception:
         traceback.print_exc()
         _stderr(f"headadapt: internal error while adapting {scan} (the traceback above); please report it")

@@ -126,17 +126,20 @@ def add_camera_and_light(root, target_scene):
 
 
 def build_result_scene(tpl, result, scan_verts, scan_tris, landmarks, report, scan_name="scan", bake=True,
-                       progress=None):
+                       progress=None, anatomy=None):
     """Add the scan (with its landmarks), the adapted template, a camera and a light, and (bake) its
-    shape keys (progress(fraction, key name) per key); return the root.
-    The seconds of the anatomy transfer and the bake go into report["stage_seconds"] (that dict itself)."""
+    shape keys (progress(fraction, key name) per key); return the root. anatomy: the transfer's, if the
+    caller made it. The seconds of the transfer (made here) and the bake go into report["stage_seconds"]
+    (that dict itself)."""
     stages = report.setdefault("stage_seconds", {})
     scan_obj = bpy.data.objects.new(scan_name, bridge.new_mesh(scan_name, scan_verts, scan_tris))
     bpy.context.scene.collection.objects.link(scan_obj)
     scan_obj["headadapt_landmarks"] = json.dumps({k: [float(c) for c in v] for k, v in landmarks.items()})
-    t0 = time.perf_counter()
-    ana = transfer(tpl, result)
-    stages["transfer"] = time.perf_counter() - t0
+    ana = anatomy
+    if ana is None:
+        t0 = time.perf_counter()
+        ana = transfer(tpl, result)
+        stages["transfer"] = time.perf_counter() - t0
     root = build_result_objects(tpl, result, bpy.context.scene, anatomy=ana)
     add_camera_and_light(root, bpy.context.scene)
     view.show_heat_map(bpy.data.screens)            # opened, the .blend shows the heat map and the legend
@@ -151,9 +154,9 @@ def build_result_scene(tpl, result, scan_verts, scan_tris, landmarks, report, sc
     return root
 
 
-def write_blend(path, tpl, result, scan_verts, scan_tris, landmarks, report, bake=True, progress=None):
+def write_blend(path, tpl, result, scan_verts, scan_tris, landmarks, report, bake=True, progress=None, anatomy=None):
     """Write a fresh .blend with the scan, the adapted head, a camera and a light, atomically (temp
-    file, then rename); progress(fraction, key name) while baking."""
+    file, then rename); progress(fraction, key name) while baking; anatomy: the transfer's, if made."""
     path = pathlib.Path(path)
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
@@ -163,7 +166,8 @@ def write_blend(path, tpl, result, scan_verts, scan_tris, landmarks, report, bak
         raise FileFormatError(f"cannot write {path}: {exc.strerror or exc}") from exc
     try:
         bpy.ops.wm.read_homefile(use_empty=True, use_factory_startup=True)
-        build_result_scene(tpl, result, scan_verts, scan_tris, landmarks, report, bake=bake, progress=progress)
+        build_result_scene(tpl, result, scan_verts, scan_tris, landmarks, report, bake=bake, progress=progress,
+                           anatomy=anatomy)
         pathlib.Path(tmp).unlink()          # mkstemp only reserved the name: Blender would back up the empty file
         bpy.ops.wm.save_as_mainfile(filepath=tmp, copy=True, compress=True)
         os.chmod(tmp, 0o644)

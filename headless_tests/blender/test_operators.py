@@ -271,9 +271,16 @@ def test_batch_writes_a_blend_that_reopens_with_the_report(tmp_path):
              "bpy.ops.wm.open_mainfile(filepath=sys.argv[1]); s = bpy.context.scene.headadapt;"
              "print('ADOPT', s.result_root and s.result_root.name, s.scan and s.scan.name, len(s.report_json) > 100);"
              "s.show_fdps = True;"
-             "print('FDPS', sum(not o.hide_get() for o in s.result_root.children_recursive if 'headadapt_fdp' in o))")
-    res = subprocess.run([sys.executable, "-c", adopt, str(out / "head.blend")], capture_output=True, text=True)
+             "print('FDPS', sum(not o.hide_get() for o in s.result_root.children_recursive if 'headadapt_fdp' in o));"
+             # the OBJ is the .blend's skin (it was the fit's, before the transfer moved the sockets' lining)
+             "import numpy as np; skin = next(o for o in s.result_root.children_recursive if o.get('headadapt_part') == 'skin');"
+             "m = np.array(skin.matrix_world); v = np.array([list(p.co) for p in skin.data.shape_keys.key_blocks[0].data]);"
+             "obj = np.array([l.split()[1:4] for l in open(sys.argv[2]) if l.startswith('v ')], float);"
+             "print('OBJ', np.abs(v @ m[:3, :3].T + m[:3, 3] - obj).max() < 1e-3)")
+    res = subprocess.run([sys.executable, "-c", adopt, str(out / "head.blend"), str(out / "adapted_head.obj")],
+                         capture_output=True, text=True)
     assert "ADOPT HA Adapted head scan True" in res.stdout and "FDPS 82" in res.stdout, res.stdout + res.stderr
+    assert "OBJ True" in res.stdout, res.stdout + res.stderr
 
 
 @pytest.mark.slow

@@ -141,6 +141,28 @@ def test_a_full_disk_exits_2_naming_the_file(tmp_path, inputs):
     assert json.loads((out / "report.json").read_text())["status"] == "failed"
 
 
+def test_a_run_interrupted_after_its_obj_leaves_only_its_report_and_reruns_without_overwrite(tmp_path, inputs):
+    """Ctrl-C during the .blend (its bake) left adapted_head.obj beside an "interrupted" report.json, and
+    the rerun was refused without --overwrite."""
+    scan, marks = inputs
+    out = tmp_path / "out"
+    code = ("import sys\n"
+            "import headadapt_addon.batch as b\n"
+            "def ctrl_c(*args, **kwargs):\n"
+            "    assert (b.pathlib.Path(sys.argv[1]) / 'adapted_head.obj').exists()\n"
+            "    raise KeyboardInterrupt\n"
+            "b._write_blend = ctrl_c\n"
+            f"sys.exit(b.main(['adapt', '--scan', {str(scan)!r}, '--landmarks', {str(marks)!r}, '--out', sys.argv[1],"
+            " '--levels', '0', '--blend', sys.argv[1] + '/head.blend']))\n")
+    proc = subprocess.run([sys.executable, "-c", code, str(out)], capture_output=True, text=True, cwd=ROOT, timeout=300)
+    assert proc.returncode == 130, proc.stderr
+    assert sorted(p.name for p in out.iterdir()) == ["report.json"]
+    assert json.loads((out / "report.json").read_text())["status"] == "interrupted"
+    assert proc.stderr.strip().splitlines()[-1].startswith(f"headadapt: interrupted: {scan} not adapted")
+    assert "Traceback" not in proc.stderr
+    assert batch("adapt", "--scan", scan, "--landmarks", marks, "--out", out, "--levels", "1").returncode == 0
+
+
 def test_an_unwritable_output_folder_exits_2_naming_it(tmp_path, inputs):
     scan, marks = inputs
     (tmp_path / "file").write_text("")
