@@ -418,16 +418,12 @@ def _adapt_and_write(record, verts, tris, points, markers, outputs, levels, cali
 
 
 def _blendout():
-    """blender.blendout, whose import starts Blender (bpy), with Ctrl-C and SIGTERM held until it has
-    started: a SIGINT in Blender's start-up scripts crashed the process (segfault), leaving report.json
-    "running". A signal that came meanwhile is delivered right after, as a KeyboardInterrupt."""
-    hold = getattr(signal, "pthread_sigmask", None)            # (not on Windows)
-    mask = hold(signal.SIG_BLOCK, {signal.SIGINT, signal.SIGTERM}) if hold else None
-    try:
+    """blender.blendout, whose import starts Blender (bpy), with Ctrl-C held until it has started
+    (core/interrupts.py: a KeyboardInterrupt in Blender's start-up scripts crashed the process)."""
+    from .core.interrupts import held_ctrl_c
+
+    with held_ctrl_c():
         from .blender import blendout
-    finally:
-        if hold:
-            hold(signal.SIG_SETMASK, mask)
     return blendout
 
 

@@ -11,6 +11,7 @@ import numpy as np
 
 from ..core.anatomy import transfer
 from ..core.exceptions import FileFormatError
+from ..core.interrupts import held_ctrl_c
 from . import animation, bridge, scene, view
 from .view import heat_colours  # noqa: F401  (blendout.heat_colours: the colours of the heat map)
 
@@ -165,11 +166,13 @@ def write_blend(path, tpl, result, scan_verts, scan_tris, landmarks, report, bak
     except OSError as exc:
         raise FileFormatError(f"cannot write {path}: {exc.strerror or exc}") from exc
     try:
-        bpy.ops.wm.read_homefile(use_empty=True, use_factory_startup=True)
+        with held_ctrl_c():
+            bpy.ops.wm.read_homefile(use_empty=True, use_factory_startup=True)
         build_result_scene(tpl, result, scan_verts, scan_tris, landmarks, report, bake=bake, progress=progress,
                            anatomy=anatomy)
         pathlib.Path(tmp).unlink()          # mkstemp only reserved the name: Blender would back up the empty file
-        bpy.ops.wm.save_as_mainfile(filepath=tmp, copy=True, compress=True)
+        with held_ctrl_c():
+            bpy.ops.wm.save_as_mainfile(filepath=tmp, copy=True, compress=True)
         os.chmod(tmp, 0o644)
         os.replace(tmp, path)
     finally:

@@ -1,0 +1,26 @@
+"""Ctrl-C held over a call that must not be cut short, then raised: Blender's start-up scripts crashed
+the process at exit (segfault) when a KeyboardInterrupt came inside them, and Blender's handlers
+(version_update on loading a file) print one and go on, so a run ended 'done' after the user's Ctrl-C."""
+
+from __future__ import annotations
+
+import contextlib
+import signal
+import threading
+
+
+@contextlib.contextmanager
+def held_ctrl_c():
+    """Within: a SIGINT is only noted; after: raised as KeyboardInterrupt. Main thread only (Python
+    takes signals there); elsewhere the block runs as it is."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    came = []
+    previous = signal.signal(signal.SIGINT, lambda *_: came.append(True))
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    if came:
+        raise KeyboardInterrupt
