@@ -723,7 +723,8 @@ def run_folder(folder, out, jobs=0, levels=None, calibration="auto", keep_flagge
     def write_summary():
         scans = list(entries.values())
         summary.update(done=sum(e["ok"] for e in scans),
-                       done_with_warnings=sum(e["ok"] and not e["outcome_ok"] for e in scans),
+                       done_with_warnings=sum(e["ok"] and bool(e.get("warnings")) for e in scans),
+                       not_trustworthy=sum(e["ok"] and not e["outcome_ok"] for e in scans),
                        failed=sum(e["status"] in ("failed", "timeout") for e in scans),
                        not_finished=sum(e["status"] == "not finished" for e in scans), scans=scans)
         meshio.write_atomic(out / "summary.json", json.dumps(summary, indent=1, default=float))
@@ -769,7 +770,8 @@ def run_folder(folder, out, jobs=0, levels=None, calibration="auto", keep_flagge
     finally:
         _restore_sigterm(previous)
         write_summary()
-    log(f"headadapt: {summary['done']} adapted ({summary['done_with_warnings']} not trustworthy), "
+    log(f"headadapt: {summary['done']} adapted ({summary['not_trustworthy']} not trustworthy, "
+        f"{summary['done_with_warnings']} with warnings), "
         f"{summary['failed']} failed, {summary['not_finished']} not finished; wrote {out / 'summary.json'}")
     return summary
 
@@ -882,7 +884,7 @@ def main(argv=None):
         return EXIT_INTERRUPTED
     if summary["failed"] or summary["not_finished"]:
         return EXIT_SCAN_FAILED
-    return EXIT_UNTRUSTWORTHY if summary["done_with_warnings"] else EXIT_OK
+    return EXIT_UNTRUSTWORTHY if summary["not_trustworthy"] else EXIT_OK
 
 
 if __name__ == "__main__":

@@ -2,6 +2,7 @@
 behave, wrong clicks are named, bad input gets clear errors, the batch command writes its files."""
 import json
 import pathlib
+import shutil
 import subprocess
 import sys
 
@@ -309,8 +310,28 @@ def test_folder_mode_counts_an_untrustworthy_fit_and_exits_3(tmp_path):
     assert proc.returncode == 3, proc.stdout + proc.stderr
     summary = json.loads((tmp_path / "out" / "summary.json").read_text())
     assert summary["done"] == 1 and summary["done_with_warnings"] == 1 and summary["failed"] == 0
+    assert summary["not_trustworthy"] == 1
     scan = summary["scans"][0]
     assert scan["ok"] is True and scan["outcome_ok"] is False
     assert any("did not reach the scan" in w for w in scan["warnings"])
     assert "headadapt: warning: fringe.obj: " in proc.stderr and "WARN fringe.obj" in proc.stdout
     assert (tmp_path / "out" / "fringe" / "adapted_head.obj").is_file()
+
+
+@pytest.mark.slow
+def test_folder_mode_counts_a_trustworthy_fit_with_a_warning_as_done_with_warnings(tmp_path):
+    """done_with_warnings counted only the fits not trustworthy: a scan whose swapped clicks were put
+    right (a warning in its report) counted 0."""
+    from headadapt_addon.batch import SAMPLE_DIR
+
+    (tmp_path / "scans").mkdir()
+    shutil.copy(SAMPLE_DIR / "scan.ply", tmp_path / "scans" / "head.ply")
+    marks = json.loads((SAMPLE_DIR / "landmarks.json").read_text())
+    pts = marks["points"]
+    pts["3.7"], pts["3.12"] = pts["3.12"], pts["3.7"]
+    (tmp_path / "scans" / "head.json").write_text(json.dumps(marks))
+    proc = subprocess.run([sys.executable, "-m", "headadapt_addon.batch", "folder", "--folder", str(tmp_path / "scans"),
+                           "--out", str(tmp_path / "out"), "--levels", "1", "--jobs", "1"], capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    summary = json.loads((tmp_path / "out" / "summary.json").read_text())
+    assert (summary["done"], summary["done_with_warnings"], summary["not_trustworthy"]) == (1, 1, 0), summary

@@ -25,6 +25,19 @@ def test_calibration_recovers_a_known_similarity(tpl, method, angles, scale):
     np.testing.assert_allclose(back, scan["3.7"], rtol=1e-9)
 
 
+def test_calibration_reports_its_residuals_in_mm_too(tpl):
+    """report.json's calibration rms and residuals were the template's metres, unlabelled, where the
+    rest of the report is mm (0.00593 read as 5.93 mm)."""
+    fdp = tpl.fdp_points()
+    scan = {k: p + (np.array([0.0, 0.0, 0.003]) if k == "9.3" else 0.0) for k, p in fdp.items()}   # nose tip 3 mm off
+    sim, info = calibration.calibrate(scan, fdp, "auto")
+    assert info["residuals_mm"]["9.3"] == pytest.approx(info["residuals"]["9.3"] * 1000.0) and 2.5 < info["residuals_mm"]["9.3"] < 3.0
+    assert info["rms_mm"] == pytest.approx(info["rms"] * 1000.0) and "mm" in info["units"]
+    assert set(info["rms_by_method_mm"]) == {"paper", "umeyama"}
+    partial = calibration.calibrate({k: scan[k] for k in list(scan)[:10] if k not in ("3.7",)}, fdp, "auto")[1]
+    assert partial["rms_by_method"]["paper"] is None and partial["rms_by_method_mm"]["paper"] is None
+
+
 @pytest.mark.parametrize("case,needle", [("nan", "3.7"), ("unknown", "3.15"), ("duplicate", "3.12"),
                                          ("coplanar", "plane"), ("missing", "10.9"), ("few", "at least 4")])
 def test_bad_landmarks_are_named(tpl, case, needle):

@@ -13,6 +13,7 @@ import numpy as np
 
 from .. import mpeg4
 from ..exceptions import LandmarkError
+from ..tol import MM
 
 MIN_FDPS = 4
 FAR_FACTOR = 20.0    # a click this many times the clicks' median distance from their middle is a slip
@@ -122,8 +123,14 @@ def calibrate(scan_fdps: dict[str, np.ndarray], template_fdps: dict[str, np.ndar
     scored = {name: _residuals(sim, common, template_fdps) for name, sim in candidates.items()}
     best = min(scored, key=lambda name: scored[name][0])
     rms, per = scored[best]
-    info = {"method": best, "rms": rms, "residuals": per,
-            "rms_by_method": {name: s[0] for name, s in scored.items()}}
+    # in the template's metres, and in its mm as the rest of report.json ("paper": None where the
+    # paper's 8 FDPs are not all given)
+    by_method = {name: (scored[name][0] if name in scored else None) for name in ("paper", "umeyama")
+                 if name in scored or method == "auto"}
+    info = {"method": best, "rms": rms, "residuals": per, "rms_by_method": by_method,
+            "rms_mm": rms * MM, "residuals_mm": {k: d * MM for k, d in per.items()},
+            "rms_by_method_mm": {k: (v * MM if v is not None else None) for k, v in by_method.items()},
+            "units": "rms, residuals, rms_by_method: template frame, m; *_mm: template frame, mm"}
     return candidates[best], info
 
 
