@@ -245,6 +245,21 @@ def result_paths(out_dir: os.PathLike | str, blend: os.PathLike | str | None = N
     return paths
 
 
+def earlier_outputs(out_dir, inputs) -> list[pathlib.Path]:
+    """The files an earlier run into out_dir wrote (its report.json's "outputs") that lie in out_dir and
+    are none of `inputs`: what --overwrite removes beside the outputs of the run to come."""
+    out_dir = pathlib.Path(out_dir)
+    try:
+        listed = json.loads((out_dir / "report.json").read_text(encoding="utf-8")).get("outputs") or {}
+    except (OSError, ValueError, AttributeError):
+        return []
+    found = []
+    for path in map(pathlib.Path, listed.values() if isinstance(listed, dict) else ()):
+        if path.parent.resolve() == out_dir.resolve() and not any(same_file(path, i) for i in inputs):
+            found.append(path)
+    return found
+
+
 def run_adapt(scan_path, landmarks_path, out_dir, levels=None, calibration="auto", keep_flagged=False,
               blend=None, overwrite=False, run_id=None, log=print, warn=_stderr, preview=None):
     """Adapt the template onto one scan file; write adapted_head.obj (+ the .blend) and report.json last,
@@ -268,10 +283,13 @@ def run_adapt(scan_path, landmarks_path, out_dir, levels=None, calibration="auto
     if blend and pathlib.Path(blend).suffix.lower() != ".blend":
         raise FileFormatError(f"--blend {blend}: Blender opens a .blend file, name a .blend file")
     check_writable(outputs)
+    if overwrite:                         # the earlier run's other files too (its .blend, its preview)
+        remove_results(earlier_outputs(out_dir, [pathlib.Path(scan_path), pathlib.Path(landmarks_path)]))
     remove_results(outputs.values())
     record = {"status": "running", "run": run_id or uuid.uuid4().hex, "scan": str(scan_path),
               "landmarks": str(landmarks_path), "headadapt_version": __version__,
-              "options": run_options(levels, calibration, keep_flagged)}
+              "options": run_options(levels, calibration, keep_flagged),
+              "outputs": {what: str(path) for what, path in outputs.items()}}
     try:
         verts, tris = meshio.read_mesh(scan_path)
         verts = as_blender_stores(verts)

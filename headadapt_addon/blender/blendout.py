@@ -126,6 +126,19 @@ def add_camera_and_light(root, target_scene):
     return cam, sun
 
 
+SCAN_UNITS = (("MILLIMETERS", 0.001), ("CENTIMETERS", 0.01), ("INCHES", 0.0254), ("METERS", 1.0))
+
+
+def set_scene_unit(scene, scale):
+    """The scene's unit set to the scan's (the one of mm, cm, inch, m nearest the calibration's
+    scale, metres of head per scan unit), so that a scan in mm opens as a head of some 250 mm, not
+    250 m."""
+    name, metres = min(SCAN_UNITS, key=lambda u: abs(np.log(u[1] / max(scale, 1e-30))))
+    scene.unit_settings.system = "IMPERIAL" if name == "INCHES" else "METRIC"
+    scene.unit_settings.scale_length = metres
+    scene.unit_settings.length_unit = name
+
+
 def build_result_scene(tpl, result, scan_verts, scan_tris, landmarks, report, scan_name="scan", bake=True,
                        progress=None, anatomy=None):
     """Add the scan (with its landmarks), the adapted template, a camera and a light, and (bake) its
@@ -133,6 +146,7 @@ def build_result_scene(tpl, result, scan_verts, scan_tris, landmarks, report, sc
     caller made it. The seconds of the transfer (made here) and the bake go into report["stage_seconds"]
     (that dict itself)."""
     stages = report.setdefault("stage_seconds", {})
+    set_scene_unit(bpy.context.scene, result.similarity.scale)
     scan_obj = bpy.data.objects.new(scan_name, bridge.new_mesh(scan_name, scan_verts, scan_tris))
     bpy.context.scene.collection.objects.link(scan_obj)
     scan_obj["headadapt_landmarks"] = json.dumps({k: [float(c) for c in v] for k, v in landmarks.items()})

@@ -276,11 +276,13 @@ def test_batch_writes_a_blend_that_reopens_with_the_report(tmp_path):
              "import numpy as np; skin = next(o for o in s.result_root.children_recursive if o.get('headadapt_part') == 'skin');"
              "m = np.array(skin.matrix_world); v = np.array([list(p.co) for p in skin.data.shape_keys.key_blocks[0].data]);"
              "obj = np.array([l.split()[1:4] for l in open(sys.argv[2]) if l.startswith('v ')], float);"
-             "print('OBJ', np.abs(v @ m[:3, :3].T + m[:3, 3] - obj).max() < 1e-3)")
+             "print('OBJ', np.abs(v @ m[:3, :3].T + m[:3, 3] - obj).max() < 1e-3);"
+             # the sample is in mm: the scene says so (it opened as a 250 m head)
+             "u = bpy.context.scene.unit_settings; print('UNIT', u.length_unit, round(u.scale_length, 6))")
     res = subprocess.run([sys.executable, "-c", adopt, str(out / "head.blend"), str(out / "adapted_head.obj")],
                          capture_output=True, text=True)
     assert "ADOPT HA Adapted head scan True" in res.stdout and "FDPS 82" in res.stdout, res.stdout + res.stderr
-    assert "OBJ True" in res.stdout, res.stdout + res.stderr
+    assert "OBJ True" in res.stdout and "UNIT MILLIMETERS 0.001" in res.stdout, res.stdout + res.stderr
 
 
 @pytest.mark.slow

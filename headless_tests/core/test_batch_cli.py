@@ -163,6 +163,27 @@ def test_a_run_interrupted_after_its_obj_leaves_only_its_report_and_reruns_witho
     assert batch("adapt", "--scan", scan, "--landmarks", marks, "--out", out, "--levels", "1").returncode == 0
 
 
+@pytest.mark.slow
+def test_overwrite_removes_the_earlier_run_s_other_files_in_the_folder_and_nothing_else(tmp_path, inputs):
+    """--overwrite with other outputs left the earlier run's .blend and preview beside the new result;
+    report.json now lists what a run wrote, and --overwrite removes those in the output folder."""
+    scan, marks = inputs
+    out = tmp_path / "out"
+    assert batch("adapt", "--scan", scan, "--landmarks", marks, "--out", out, "--levels", "1").returncode == 0
+    report = json.loads((out / "report.json").read_text())
+    assert report["outputs"] == {"adapted OBJ": str(out / "adapted_head.obj"), "report": str(out / "report.json")}
+    # as if the earlier run had also written a preview and a .blend, one of them outside the folder
+    (out / "head.png").write_bytes(b"png")
+    (tmp_path / "elsewhere.blend").write_bytes(b"blend")
+    report["outputs"].update({"--preview image": str(out / "head.png"), "--blend file": str(tmp_path / "elsewhere.blend"),
+                              "scan?": str(scan)})
+    (out / "report.json").write_text(json.dumps(report))
+    assert batch("adapt", "--scan", scan, "--landmarks", marks, "--out", out, "--levels", "1",
+                 "--overwrite").returncode == 0
+    assert sorted(p.name for p in out.iterdir()) == ["adapted_head.obj", "report.json"]
+    assert (tmp_path / "elsewhere.blend").exists() and scan.exists()
+
+
 def test_an_unwritable_output_folder_exits_2_naming_it(tmp_path, inputs):
     scan, marks = inputs
     (tmp_path / "file").write_text("")
