@@ -314,10 +314,11 @@ def run_adapt(scan_path, landmarks_path, out_dir, levels=None, calibration="auto
             record.update(status="failed", error=f"{scan_path}: internal error: {type(exc).__name__}: {exc}",
                           traceback=traceback.format_exc())
         if out_dir.is_dir():
-            try:                          # what this run wrote before it failed is no result: gone
-                remove_results(path for name, path in outputs.items() if name != "report")
+            try:                          # the report first (out of memory, little else may work) ...
                 meshio.write_atomic(outputs["report"], json.dumps(record, indent=1))
-            except FileFormatError:
+                # ... then what this run wrote before it failed, which is no result
+                remove_results([path for name, path in outputs.items() if name != "report"])
+            except (FileFormatError, MemoryError):
                 pass                      # the original error is the one to report
         raise
     log(f"headadapt: best level {report['best_level']}; {outcome_text.verdict(report['outcome'])}")
@@ -646,6 +647,9 @@ def _scan_main(job_text: str) -> int:
     # The parent holds our stdin open; when it dies (kill -9) the pipe closes and this scan stops too.
     # (Started before the memory limit, which can leave no room for a thread's stack.)
     threading.Thread(target=_exit_with_parent, daemon=True).start()
+    # the fit's modules (scipy's libraries) loaded before the limit, which is for the work: loaded under
+    # it, they took the room the failure's own report needed
+    from .core.adapt import adapt  # noqa: F401
     try:
         import resource
     except ImportError:                  # Windows: no address-space limit

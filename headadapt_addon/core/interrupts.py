@@ -12,8 +12,10 @@ import threading
 @contextlib.contextmanager
 def held_ctrl_c():
     """Within: a SIGINT is only noted; after: raised as KeyboardInterrupt. Main thread only (Python
-    takes signals there); elsewhere the block runs as it is."""
-    if threading.current_thread() is not threading.main_thread():
+    takes signals there), where Python holds SIGINT's handler; elsewhere the block runs as it is."""
+    # (in a Blender binary Python did not install SIGINT's handler, Blender did: getsignal gives None,
+    # and Python could not put Blender's back)
+    if threading.current_thread() is not threading.main_thread() or signal.getsignal(signal.SIGINT) is None:
         yield
         return
     came = []

@@ -158,8 +158,10 @@ def test_blend_and_preview_are_flags_writing_one_of_each_per_scan(tmp_path):
     png = (tmp_path / "out" / "a" / "preview.png").read_bytes()[:24]
     assert png[:8] == b"\x89PNG\r\n\x1a\n" and struct.unpack(">II", png[16:24]) == (1280, 1280)
     stages = json.loads((tmp_path / "out" / "a" / "report.json").read_text())["stage_seconds"]
-    assert {"read", "calibrate", "prepare", "level_0", "level_1", "unfold", "transfer", "bake", "blend"} <= set(stages)
-    assert stages["blend"] >= stages["transfer"] + stages["bake"] > 0
+    assert {"read", "calibrate", "prepare", "level_0", "level_1", "unfold", "transfer", "preview", "bake",
+            "blend"} <= set(stages)
+    report = json.loads((tmp_path / "out" / "a" / "report.json").read_text())
+    assert all(s > 0 for s in stages.values()) and sum(stages.values()) <= report["total_seconds"]   # each once
 
 
 def test_the_blend_writer_is_imported_only_to_write_a_blend(tmp_path):

@@ -11,7 +11,7 @@ from ..template import Template
 from .bone import clear_visible_skin, keep_inside, relax_cleared, unrelax_under_skin
 from .lift import lift_visible_skin
 from .model import Anatomy
-from .rigid import RIGID_FDPS, fdp_scale, rigid_from_fdps, seat_orbits, surface_point
+from .rigid import RIGID_FDPS, rigid_from_fdps, seat_orbits, surface_point
 
 
 def transfer(tpl: Template, result: AdaptResult) -> Anatomy:
@@ -24,14 +24,10 @@ def transfer(tpl: Template, result: AdaptResult) -> Anatomy:
         if ref["part"] == "skin":
             fdps[name] = surface_point(parts["skin"], tris["skin"], ref)
     rigid = {}
-    # a person's two eyeballs are one size: each eye's lids give eq 25 a scale (their opening moves it,
-    # up to 18% apart on scan-like heads), both eyes take the two's geometric mean
-    eyes = float(np.sqrt(np.prod([fdp_scale(tpl_fdps, fdps, *RIGID_FDPS[e][:2]) for e in ("eye_l", "eye_r")])))
     for name, (x_pair, y_pair, ref) in RIGID_FDPS.items():
         # centre through the map (it carries the socket around the part), scale and turn by eq 25
         centre = result.map_points(tpl.parts[name].verts.mean(axis=0)[None])[0]
-        sim = rigid_from_fdps(tpl.parts[name].verts, tpl_fdps, fdps, x_pair, y_pair, ref, centre,
-                              scale=eyes if name.startswith("eye_") else None)
+        sim = rigid_from_fdps(tpl.parts[name].verts, tpl_fdps, fdps, x_pair, y_pair, ref, centre)
         rigid[name] = sim
         parts[name] = sim.apply(tpl.parts[name].verts)
     # the skull through the final map (all last-level FPs)

@@ -28,24 +28,18 @@ def _frame(p, x_pair, y_pair):
     return np.stack([x, y, np.cross(x, y)])
 
 
-def fdp_scale(template_fdps, adapted_fdps, x_pair, y_pair):
-    """The paper's eq 25 scale of a rigid part: the geometric mean of the two axis-length ratios (eq 25
-    multiplies them, which would scale by an area ratio)."""
+def rigid_from_fdps(part_verts, template_fdps, adapted_fdps, x_pair, y_pair, ref, centre=None):
+    """The paper's eq 25-28 similarity for a rigid part (uniform scale, rotation, translation).
+
+    Scale: the geometric mean of the two axis-length ratios (eq 25 multiplies them, which would
+    scale by an area ratio); rotation: the frame (x, y orthogonalised) of the adapted FDPs times the
+    inverse of the template's; the part's centre keeps its offset from the FDPs' mean (eq 26-27),
+    unless `centre` (where the adaptation map takes the part's centre) is given.
+    """
     s, t = template_fdps, adapted_fdps
     ratio = (np.linalg.norm(t[x_pair[0]] - t[x_pair[1]]) * np.linalg.norm(t[y_pair[0]] - t[y_pair[1]])
              / (np.linalg.norm(s[x_pair[0]] - s[x_pair[1]]) * np.linalg.norm(s[y_pair[0]] - s[y_pair[1]])))
-    return float(np.sqrt(ratio))
-
-
-def rigid_from_fdps(part_verts, template_fdps, adapted_fdps, x_pair, y_pair, ref, centre=None, scale=None):
-    """The paper's eq 25-28 similarity for a rigid part (uniform scale, rotation, translation).
-
-    Scale: fdp_scale's, unless `scale` is given; rotation: the frame (x, y orthogonalised) of the
-    adapted FDPs times the inverse of the template's; the part's centre keeps its offset from the
-    FDPs' mean (eq 26-27), unless `centre` (where the adaptation map takes the part's centre) is given.
-    """
-    s, t = template_fdps, adapted_fdps
-    scale = fdp_scale(s, t, x_pair, y_pair) if scale is None else float(scale)
+    scale = float(np.sqrt(ratio))
     rot = _frame(t, x_pair, y_pair).T @ _frame(s, x_pair, y_pair)
     c_s = np.asarray(part_verts).mean(axis=0)
     r_s = np.mean([s[k] for k in ref], axis=0)
