@@ -136,6 +136,7 @@ def calibrate(scan_fdps: dict[str, np.ndarray], template_fdps: dict[str, np.ndar
 
 MAY_COINCIDE = (("2.4", "8.3"), ("2.5", "8.4"), ("2.2", "2.3"))   # FDPs one click may rightly share
 SWAP_GAIN = 0.5      # a relabelling counts only if it at least halves the calibration residual
+SUSPECT = 2.0        # a click this many times the clicks' median calibration residual may carry another's label
 
 
 def _rms(scan_fdps, template_fdps, names):
@@ -171,18 +172,24 @@ def check_handedness(scan_fdps, template_fdps):
         everything = swap(scan_fdps, pairs)
         if _rms(everything, template_fdps, common) < SWAP_GAIN * rms:
             return everything, {**none, "swapped": [list(p) for p in pairs], "all": True}
-    fixed, found = dict(scan_fdps), dict(none)
-    candidates = [(a, b) for i, a in enumerate(sorted(common)) for b in sorted(common)[i + 1:]]
-    while candidates:
+    fixed, found, done = dict(scan_fdps), dict(none), set()
+    while True:
+        # every left/right pair, and the pairs of clicks far from their places (two other labels
+        # exchanged put both so; every pair of 74 clicks took 0.6 s a round)
+        sim = umeyama(np.array([fixed[k] for k in common]), np.array([template_fdps[k] for k in common]))
+        per = _residuals(sim, {k: fixed[k] for k in common}, template_fdps)[1]
+        typical = float(np.median(list(per.values())))
+        suspects = sorted(k for k in common if per[k] > SUSPECT * typical and k not in done)
+        candidates = [p for p in pairs if not done & set(p)] + [
+            (a, b) for i, a in enumerate(suspects) for b in suspects[i + 1:] if (a, b) not in pairs]
         trials = [_rms(swap(fixed, [pair]), template_fdps, common) for pair in candidates]
-        best = int(np.argmin(trials))
-        if not trials[best] < SWAP_GAIN * rms:
+        if not trials or not min(trials) < SWAP_GAIN * rms:
             break
-        pair = candidates.pop(best)
-        fixed, rms = swap(fixed, [pair]), trials[best]
+        pair = candidates[int(np.argmin(trials))]
+        fixed, rms = swap(fixed, [pair]), min(trials)
         key = "swapped" if pair in pairs else "relabelled"
         found[key] = found[key] + [list(pair)]
-        candidates = [c for c in candidates if not set(c) & set(pair)]
+        done |= set(pair)
     return fixed, found
 
 
