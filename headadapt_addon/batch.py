@@ -402,23 +402,23 @@ def _adapt_and_write(record, verts, tris, points, markers, outputs, levels, cali
     for lv in result.levels:
         log(f"  level {lv.level}: {lv.method:6s} {lv.pairs:5d} pairs  E_d {lv.E_d:8.3f} mm^2  "
             f"RMS {lv.E_d_rms_mm:6.3f} mm  E {lv.E:8.3f}  {lv.seconds:6.2f} s")
-    clustered = result.calibration_info.get("scan_clustered")
+    info = result.calibration_info
+    clustered = info.get("scan_clustered")
     if clustered:
         log(f"  dense scan clustered to a {clustered['cell_mm']:g} mm grid for the fit: {clustered['vertices']:,} -> "
             f"{clustered['kept']:,} vertices")
-    welded = result.calibration_info.get("scan_welded")
+    welded = info.get("scan_welded")
     if welded:
         log(f"  the scan's triangles did not share their corners (split vertices, a triangle soup): "
             f"{welded['vertices']:,} -> {welded['kept']:,} vertices, welded where they coincide")
-    info = result.calibration_info
     if info.get("scan_triangles_repeated"):
         log(f"  {info['scan_triangles_repeated']:,} of the scan's triangles were written twice (a double-sided "
             "export?): dropped")
     if info.get("scan_triangles_turned"):
         log(f"  {info['scan_triangles_turned']:,} of the scan's triangles were wound against their neighbours: "
             "turned to match")
-    if result.calibration_info.get("scan_pieces_turned"):
-        log(f"  {result.calibration_info['scan_pieces_turned']} scan piece(s) faced inward: read turned round")
+    if info.get("scan_pieces_turned"):
+        log(f"  {info['scan_pieces_turned']} scan piece(s) faced inward: read turned round")
     if result.unfolded and result.unfolded["folded_triangles"]:
         log(f"  {result.unfolded['folded_triangles']} folded triangles relaxed "
             f"({result.unfolded['vertices_relaxed']} vertices), {result.unfolded['folded_left']} left")

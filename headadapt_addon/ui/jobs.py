@@ -73,12 +73,12 @@ def drop_all(wm=None):
     progress cursor and the status bar's text go too."""
     for run in _RUNNING:
         run.job.cancel()
-        if wm is not None:
-            if getattr(run, "timer", None) is not None:
-                wm.event_timer_remove(run.timer)
-            wm.progress_end()
-            for window in wm.windows:
-                window.workspace.status_text_set(None)
+        if wm is not None and getattr(run, "timer", None) is not None:
+            wm.event_timer_remove(run.timer)
+    if _RUNNING and wm is not None:
+        wm.progress_end()
+        for window in wm.windows:
+            window.workspace.status_text_set(None)
     _RUNNING.clear()
 
 

@@ -663,10 +663,14 @@ def _forget_kept(*_args):
     the batch runs without the add-on) gets its scan, result and report in the panels."""
     kept.forget()
     jobs.drop_all(bpy.context.window_manager)
-    for sc in bpy.data.scenes:
-        if getattr(sc, "headadapt", None) is not None:
-            sc.headadapt.progress_text = ""
-            scene.adopt_tagged(sc)
+    for sc in _ours(bpy.data.scenes):
+        sc.headadapt.progress_text = ""
+        scene.adopt_tagged(sc)
+
+
+def _ours(scenes):
+    """The scenes with HeadAdapt's settings (registered)."""
+    return [sc for sc in scenes if getattr(sc, "headadapt", None) is not None]
 
 
 def register():
@@ -684,7 +688,6 @@ def unregister():
         wm, scenes = None, []
     jobs.drop_all(wm)
     threads.shutdown()             # (the fit's worker threads: none left behind by a disabled add-on)
-    for sc in scenes:              # the setting outlives the add-on in the file: no stale progress line
-        if getattr(sc, "headadapt", None) is not None:
-            sc.headadapt.progress_text = ""
+    for sc in _ours(scenes):       # the setting outlives the add-on in the file: no stale progress line
+        sc.headadapt.progress_text = ""
     _unregister_classes()

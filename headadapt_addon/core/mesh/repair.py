@@ -25,10 +25,7 @@ def drop_repeated_faces(tris, n):
     if len(tris) <= TWICE * n:
         return tris, 0
     tris = np.asarray(tris, dtype=np.int64)
-    s = np.sort(tris, axis=1)
-    key = (s[:, 0] * n + s[:, 1]) * n + s[:, 2] if n ** 3 < 1 << 62 else None
-    _, first = np.unique(key if key is not None else s, axis=None if key is not None else 0, return_index=True)
-    first.sort()
+    first = simplify.first_of_each(tris, n)
     return tris[first], len(tris) - len(first)
 
 
