@@ -156,6 +156,7 @@ def build_result_scene(tpl, result, scan_verts, scan_tris, landmarks, report, sc
         ana = transfer(tpl, result)
         stages["transfer"] = time.perf_counter() - t0
     root = build_result_objects(tpl, result, bpy.context.scene, anatomy=ana)
+    root["headadapt_scan"] = scan_obj                 # the add-on's panels show a scan's own result
     add_camera_and_light(root, bpy.context.scene)
     view.show_heat_map(bpy.data.screens)            # opened, the .blend shows the heat map and the legend
     view.show_scan_as_wire(scan_obj)

@@ -8,12 +8,14 @@ Layout (all objects tagged with the custom property ``headadapt_part``)::
       Jaw pivot (empty at the jaw pivot; rotate about its local X to open the jaw)
         mandible, teeth_lower (meshes)
       eye_l, eye_r, teeth_upper, tongue (meshes)
-      FDPs (empty) -> "FDP 3.7" ... (sphere empties on the surface; property headadapt_fdp)
+      FDPs (empty) -> "FDP 3.7 (ROOT)" ... (sphere empties on the surface; property headadapt_fdp)
       Markers (empty) -> "Marker glabella" ...
       Muscles (empty) -> one curve per linear muscle (attachment -> insertion), one closed
                          curve per sphincter ellipse
     FDPs, markers and muscles (the helpers) start hidden: the panels' Display toggles show them.
 """
+
+import json
 
 import bpy
 import numpy as np
@@ -105,7 +107,9 @@ def add_template(tpl, collection=None, name=ROOT_NAME):
 
     group = _empty("FDPs", collection, root, "fdps")
     for fdp_id, point in tpl.fdp_points().items():
-        obj = _empty(f"FDP {fdp_id}", collection, group, "fdp", point, "SPHERE", FDP_SIZE_M)
+        # the head's name after the id: Blender reads a name's last ".N" as a copy's number, so a second
+        # head's "FDP 10.1" became "FDP 10.011", another FDP's name to the eye
+        obj = _empty(f"FDP {fdp_id} ({root.name})", collection, group, "fdp", point, "SPHERE", FDP_SIZE_M)
         obj["headadapt_fdp"] = fdp_id
         obj["headadapt_label"] = tpl.meta["fdps"][fdp_id]["label"]
         obj.color = COLOURS["fdp"]
@@ -147,8 +151,43 @@ def template_objects(root):
     return out
 
 
+def root_of(obj):
+    """The head root (a result's or the template's) obj is or lies under, else None."""
+    while obj is not None and obj.get("headadapt_part") not in ("result_root", "root"):
+        obj = obj.parent
+    return obj
+
+
+def scan_results(sc, scan):
+    """The result roots in scene sc made from the object scan (tagged "headadapt_scan" by Adapt)."""
+    return [o for o in sc.objects if o.get("headadapt_part") == "result_root" and scan is not None
+            and o.get("headadapt_scan") == scan]
+
+
+def follow_scan(s, sc):
+    """Point the panels at the scan's own state when the scan changes: its result (the one shown, if
+    it is the scan's; else its last), that result's report, and the RMS of the scan's calibration. A
+    result made before results were tagged with their scan is left as it is."""
+    root = s.result_root
+    if root is not None and root.get("headadapt_scan") is None and root.name in sc.objects:
+        return
+    mine = scan_results(sc, s.scan)
+    if root not in mine:
+        s.result_root = mine[-1] if mine else None
+        s.report_json = s.result_root.get("headadapt_report", "") if s.result_root else ""
+    cal = s.scan.get("headadapt_calibration") if s.scan is not None else None
+    try:
+        s.calibration_rms_mm = float(json.loads(cal)["rms"]) * 1000.0 if cal else -1.0
+    except (ValueError, KeyError, TypeError):
+        s.calibration_rms_mm = -1.0
+
+
 def head_root(context):
-    """The head expressions act on: the adaptation result if there is one, else the template."""
+    """The head expressions act on: the selected one (the active object is a head or lies under one),
+    else the adaptation result if there is one, else the template."""
+    picked = root_of(context.active_object) if context.active_object is not None else None
+    if picked is not None and picked.name in context.scene.objects:
+        return picked
     s = getattr(context.scene, "headadapt", None)
     chosen = s and (s.result_root or s.template_root)
     if chosen is not None:

@@ -39,6 +39,14 @@ def scan_problem(context):
         return "no scan selected: pick the scan object in the Scan panel"
     if scan.type != "MESH":
         return f"{scan.name!r} is not a mesh"
+    if context.scene.objects.get(scan.name) != scan:
+        return f"the scan {scan.name!r} is not in the scene (deleted?): pick the scan object in the Scan panel"
+    scale = scan.matrix_world.to_scale()
+    if max(scale) - min(scale) > 1e-4 * max(abs(max(scale)), 1e-12):
+        # the result's root takes the scan's transform, and an object cannot hold the shear that a
+        # stretch and the fit's turn make together: the head would be drawn off the scan
+        return (f"the scan {scan.name!r} is scaled unevenly ({', '.join(f'{c:g}' for c in scale)}): apply "
+                "its scale first (Object > Apply > Scale)")
     if len(scan.data.polygons) == 0:
         return f"scan {scan.name!r} has no faces (a point cloud is not a surface)"
     return None
@@ -393,7 +401,7 @@ def check_clicks(context):
             pipeline.check_on_surface(answer[0].scan, answer[2], options)
     except HeadAdaptError as exc:
         hint = calibration.unit_hint(verts, pts)
-        raise HeadAdaptError(str(exc) + (f"; {hint}" if hint and hint not in str(exc) else "")) from exc
+        raise HeadAdaptError(str(exc) + (f"; {hint}" if hint and hint.lower() not in str(exc).lower() else "")) from exc
     rms_mm = answer[4]["rms"] * 1000.0
     head_mm = head_size_mm()
     if rms_mm > CALIBRATION_RMS_LIMIT * head_mm:
@@ -434,6 +442,17 @@ def remove_result(root):
     for c in colls:
         if c.name in bpy.data.collections and not c.all_objects:
             bpy.data.collections.remove(c)
+
+
+def leave_edit_mode(context, root):
+    """Object Mode, when the object in Edit Mode is root or lies under it (its edits kept): the name of
+    that object, else None. Keys written or objects removed under Edit Mode are lost or left dangling."""
+    obj = context.view_layer.objects.active if context.view_layer else None
+    if obj is None or obj.mode != "EDIT" or scene.root_of(obj) != root:
+        return None
+    obj.update_from_editmode()
+    bpy.ops.object.mode_set(mode="OBJECT")
+    return obj.name
 
 
 class AdaptRun(Run):
@@ -480,16 +499,37 @@ class AdaptRun(Run):
         from ..core.adapt import outcome as outcome_text
         s = settings(context)
         jobs.show_progress(context, 1.0, "building the result objects")
+        # the last result of this scan is replaced (one made before results were tagged with their
+        # scan: the one shown); other scans' results stay
         old = s.result_root
+        if old is not None and old.get("headadapt_scan") not in (None, self.scan):
+            old = None
+        mine = scene.scan_results(context.scene, self.scan)
+        if old is None and mine:
+            old = mine[-1]
+        replaced = None
         if old is not None and not s.keep_results and old.name in bpy.data.objects:
+            replaced = old.name
+            leave_edit_mode(context, old)
             remove_result(old)
         root = blendout.build_result_objects(template(), result, context.scene, self.scan.matrix_world,
                                              anatomy=anatomy, name=self.scan.name)
+        root["headadapt_scan"] = self.scan
+        if s.scan != self.scan:
+            s.scan = self.scan
         s.report_json = json.dumps(result.report(), default=float)
         s.result_root = root
+        if context.view_layer.objects.active is None:      # the replaced result was the active object
+            context.view_layer.objects.active = root
         apply_display(s, context)          # heat map on, scan as wire, helpers as the toggles say
         msg = (f"adapted: best level {result.best_level}, {outcome_text.verdict(result.outcome)}, "
                f"{time.perf_counter() - self.t0:.1f} s")
+        if replaced:
+            msg += f"; it replaces the earlier result {replaced!r} (Keep earlier results keeps them)"
+        mods = [m.name for m in self.scan.modifiers if m.show_viewport]
+        if mods:
+            msg += (f"; the scan's modifiers ({', '.join(mods)}) were not applied: the fit is on its mesh "
+                    "without them")
         turned = result.calibration_info.get("scan_pieces_turned", 0)
         if turned:
             msg += f"; {turned} scan piece(s) faced inward and were read turned round"
@@ -527,10 +567,13 @@ class BakeRun(Run):
     def finish(self, context, value, report):
         from ..blender import blendout
         jobs.show_progress(context, 1.0, "writing the shape keys")
+        # keys written under Edit Mode are lost when it is left (its own copy of the mesh wins)
+        left = leave_edit_mode(context, self.root)
         timing = blendout.apply_bake(self.root, *value, self.kinds, self.preview)
         cores = f", {timing['helper_keys']} of them on a second core" if timing["helper_keys"] else ""
         report({"INFO"}, f"baked {timing['keys']} shape keys on {self.root.name!r} "
-                         f"({timing['per_key_s'] * 1000:.0f} ms per key{cores})")
+                         f"({timing['per_key_s'] * 1000:.0f} ms per key{cores})"
+                         + (f"; {left} was taken out of Edit Mode to receive them" if left else ""))
         return {"FINISHED"}
 
 

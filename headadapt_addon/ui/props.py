@@ -2,7 +2,7 @@
 
 import bpy
 
-from ..blender import view
+from ..blender import scene, view
 from ..core import mpeg4
 from ..core.adapt.options import MAX_LEVELS, AdaptOptions
 
@@ -36,13 +36,18 @@ def _update(self, context):
     apply_display(self, context)
 
 
+def _scan_changed(self, context):
+    """Another scan: the panels show its own result, report and calibration (scene.follow_scan)."""
+    scene.follow_scan(self, context.scene)
+
+
 def _legend(mm):
     return lambda _self: tuple(float(c) for c in view.heat_colours([mm])[0, :3])
 
 
 class HeadAdaptSettings(bpy.types.PropertyGroup):
     """What the panels show and the operators use."""
-    scan: bpy.props.PointerProperty(name="Scan", type=bpy.types.Object, poll=_is_mesh,
+    scan: bpy.props.PointerProperty(name="Scan", type=bpy.types.Object, poll=_is_mesh, update=_scan_changed,
                                     description="The scanned head (never modified)")
     template_root: bpy.props.PointerProperty(name="Template", type=bpy.types.Object)
     result_root: bpy.props.PointerProperty(name="Result", type=bpy.types.Object)

@@ -238,7 +238,7 @@ def _refuse_far(names: list[str], dist: np.ndarray, where: str, options: AdaptOp
                 raise LandmarkError(f"{said[0].upper()}{said[1:]} (FDP {k}, {mpeg4.FDPS[k].label}, is {far} "
                                     "in the template's frame)")
             raise LandmarkError(f"FDP {k} ({mpeg4.FDPS[k].label}) is {far} after calibration: landmarks must be "
-                                "picked on this scan (wrong file or unit?)")
+                                "picked on this scan (a scan trimmed since, the wrong file or unit?)")
 
 
 class Unfolding:
