@@ -215,7 +215,8 @@ def import_fap(root, anim, start=1):
     asked beyond its slider range gets its range widened, up to Blender's -10..10; beyond that it is
     cut there and named in "clipped". Everything is checked before anything changes: HeadAdaptError
     for a file with no frames, longer than Blender's timeline or at a frame rate its scene cannot
-    hold. Returns {what: count keyed, "clipped": {key: the largest value asked}}.
+    hold. Returns {what: count keyed, "clipped": {key: the largest value asked}, "unbaked": [the keys the
+    file asks for that are not baked on the head]}.
     """
     full = float(mpeg4.INTENSITY_MAX)
     objs = scene.template_objects(root)
@@ -234,6 +235,7 @@ def import_fap(root, anim, start=1):
     frames = (anim.frames - anim.frames[0]).astype(np.float64) + start
     curves = {}                                            # key name -> (frames, values)
     counts = {"faps": 0, "expressions": 0, "visemes": 0, "head": 0}
+    unbaked = []                                           # keys the file asks for that the head lacks
     for number, fap in mpeg4.FAPS.items():
         col = anim.values[:, number]
         given = ~np.isnan(col)
@@ -242,9 +244,13 @@ def import_fap(root, anim, start=1):
         if fap.name in info and info[fap.name].get("fap_units"):
             curves[fap.name] = (frames[given], col[given] / info[fap.name]["fap_units"])
             counts["faps"] += 1
+        elif fap.name not in info:
+            unbaked.append(fap.name)
     ex = anim.expressions
     if (~np.isnan(ex[:, 0])).any():
         rows = ~np.isnan(ex[:, 0])
+        asked = set(ex[rows, 0].astype(int)) | set(ex[rows, 2][~np.isnan(ex[rows, 2])].astype(int))
+        unbaked += [name for i, name in enumerate(mpeg4.EXPRESSIONS, start=1) if i in asked and name not in info]
         for i, name in enumerate(mpeg4.EXPRESSIONS, start=1):
             if name in info:
                 w = (np.where(ex[rows, 0] == i, ex[rows, 1], 0.0) + np.where(ex[rows, 2] == i, ex[rows, 3], 0.0)) / full
@@ -254,6 +260,9 @@ def import_fap(root, anim, start=1):
     if (~np.isnan(vi[:, 0])).any():
         rows = ~np.isnan(vi[:, 0])
         blend = np.nan_to_num(vi[rows, 2], nan=full) / full
+        asked = set(vi[rows, 0].astype(int)) | set(vi[rows, 1][~np.isnan(vi[rows, 1])].astype(int))
+        unbaked += [f"viseme_{name}" for number, (name, _) in mpeg4.VISEMES.items()
+                    if number in asked and f"viseme_{name}" not in info]
         for number, (name, _) in mpeg4.VISEMES.items():
             key = f"viseme_{name}"
             if key in info:
@@ -277,4 +286,5 @@ def import_fap(root, anim, start=1):
     counts["head"] = head_rotation(root, anim, frames)
     sc.frame_start, sc.frame_end = int(frames[0]), int(frames[-1])
     counts["clipped"] = clipped
+    counts["unbaked"] = unbaked
     return counts

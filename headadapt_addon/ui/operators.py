@@ -648,9 +648,14 @@ class HEADADAPT_OT_import_fap(_Base, ImportHelper, bpy.types.Operator):
             counts = animation.import_fap(root, anim)
         except HeadAdaptError as exc:
             return self.fail(f"{self.filepath}: {exc}")
-        clipped = counts.pop("clipped")
+        clipped, unbaked = counts.pop("clipped"), counts.pop("unbaked")
         self.report({"INFO"}, f"{name}: {len(anim.frames)} frames at {anim.fps:g} fps; "
                               + ", ".join(f"{v} {k}" for k, v in counts.items()))
+        if unbaked:
+            self.report({"WARNING"}, f"{name}: {len(unbaked)} key{'s' if len(unbaked) != 1 else ''} the file asks for "
+                                     f"{'are' if len(unbaked) != 1 else 'is'} not baked on {root.name!r}, so not "
+                                     f"played: {', '.join(unbaked[:12])}{' ...' if len(unbaked) > 12 else ''} "
+                                     "(bake their set first)")
         if clipped:
             self.report({"WARNING"}, f"{name}: {len(clipped)} key{'s' if len(clipped) != 1 else ''} asked beyond what a shape key plays (-10 to 10 "
                                      "times the baked amplitude), cut there: " + ", ".join(

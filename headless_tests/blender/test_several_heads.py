@@ -129,3 +129,27 @@ def test_a_scan_scaled_unevenly_or_deleted_is_refused_by_name(ui_scene):
         assert bpy.ops.object.delete() == {"FINISHED"}
         with pytest.raises(RuntimeError, match="not in the scene"):
             bpy.ops.headadapt.adapt()
+
+
+def test_a_fap_file_names_the_keys_the_head_has_not_baked(ui_scene, tmp_path, capfd):
+    # a head baked with the expressions only, given a .fap that opens the jaw: it said "0 faps" and
+    # nothing of the key it could not play
+    import bpy
+
+    from headadapt_addon.core import mpeg4
+    from headadapt_addon.core.fapfile import FapAnimation, write_fap
+
+    with bpy.context.temp_override(**ui_scene):
+        _scan("A")
+        assert bpy.ops.headadapt.adapt(levels=0) == {"FINISHED"}
+        assert bpy.ops.headadapt.bake_expressions(sets={"expression"}) == {"FINISHED"}
+        vals = np.full((2, mpeg4.N_FAPS + 1), np.nan)
+        vals[:, 3] = [0, 512]                                   # open_jaw
+        expr = np.full((2, 6), np.nan)
+        expr[:, :2] = [[1, 63], [6, 63]]                        # joy, then surprise: baked
+        write_fap(tmp_path / "jaw.fap", FapAnimation("jaw", 25.0, np.arange(2), vals, np.full((2, 4), np.nan), expr))
+        capfd.readouterr()
+        assert bpy.ops.headadapt.import_fap(filepath=str(tmp_path / "jaw.fap")) == {"FINISHED"}
+        said = capfd.readouterr().out
+        assert "0 faps, 6 expressions" in said
+        assert "1 key the file asks for is not baked on 'A adapted', so not played: open_jaw" in said
