@@ -173,6 +173,12 @@ class Modal:
         return {"RUNNING_MODAL"}
 
     def modal(self, context, event):
+        if event.type == "Z" and getattr(event, "value", "") == "PRESS" and (
+                getattr(event, "ctrl", False) or getattr(event, "oskey", False)):
+            # an undo now would take back the step before the run (Calibrate), and the run's result
+            # would then be thrown away as its objects' undoing: held until the run ends
+            self.report({"WARNING"}, f"{self._run.what} is running: Esc cancels it; undo waits until it has ended")
+            return {"RUNNING_MODAL"}
         answer = self._run.step(context, event.type, self.report)
         if answer & {"FINISHED", "CANCELLED"}:
             context.window_manager.event_timer_remove(self._timer)

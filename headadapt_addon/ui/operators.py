@@ -346,8 +346,10 @@ class HEADADAPT_OT_load_sample_scan(_Base, bpy.types.Operator):
             other.select_set(False)
         obj.select_set(True)
         context.view_layer.objects.active = obj
+        unit = match_scene_unit(context, 0.001)              # the sample is in mm
         self.report({"INFO"}, f"sample scan: {len(verts):,} vertices, {len(pts)} landmarks; "
-                              + ("Calibrate and Adapt" if pts else f"click {', '.join(mpeg4.CLICKS_8)}"))
+                              + ("Calibrate and Adapt" if pts else f"click {', '.join(mpeg4.CLICKS_8)}")
+                              + (f"; the scene's unit is now the sample's ({unit})" if unit else ""))
         return {"FINISHED"}
 
 
@@ -455,6 +457,18 @@ def leave_edit_mode(context, root):
     return obj.name
 
 
+def match_scene_unit(context, scale):
+    """A scene still in Blender's default unit (metres, scale 1) takes the scan's (scale: metres per scan
+    unit, blendout.set_scene_unit), as the batch's .blend does, so a scan in mm reads as a head of
+    250 mm, not 250 m: the unit's name (lower case), or None when nothing changed."""
+    from ..blender import blendout
+    u = context.scene.unit_settings
+    if (u.system, u.scale_length, u.length_unit) != ("METRIC", 1.0, "METERS"):
+        return None
+    blendout.set_scene_unit(context.scene, scale)
+    return None if u.length_unit == "METERS" else u.length_unit.lower()
+
+
 class AdaptRun(Run):
     """One Adapt of the scene's scan: the fit and the anatomy transfer on a Job, the result objects
     built in the main thread when it is done."""
@@ -526,6 +540,9 @@ class AdaptRun(Run):
                f"{time.perf_counter() - self.t0:.1f} s")
         if replaced:
             msg += f"; it replaces the earlier result {replaced!r} (Keep earlier results keeps them)"
+        unit = match_scene_unit(context, result.similarity.scale)
+        if unit:
+            msg += f"; the scene's unit is now the scan's ({unit})"
         mods = [m.name for m in self.scan.modifiers if m.show_viewport]
         if mods:
             msg += (f"; the scan's modifiers ({', '.join(mods)}) were not applied: the fit is on its mesh "

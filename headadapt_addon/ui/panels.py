@@ -111,7 +111,7 @@ def draw_landmarks(layout, context):
     others = [k for k in mpeg4.FDPS if k not in mpeg4.CLICKS_8]
     row = col.row()
     row.prop(s, "show_all_fdps", emboss=False, icon="DISCLOSURE_TRI_DOWN" if s.show_all_fdps else "DISCLOSURE_TRI_RIGHT",
-             text=f"Other FDPs (optional): {sum(k in pts for k in others)} of {len(others)} placed")
+             text=f"Other FDPs: {sum(k in pts for k in others)} of {len(others)}")
     if s.show_all_fdps:
         box = col.box().column(align=True)
         for name in others:
@@ -124,6 +124,14 @@ def _fdp_row(layout, name, pts, s):
     row.label(text=f"{name}  {mpeg4.FDPS[name].label}", icon=mark)
     if name in pts:
         row.operator("headadapt.clear_landmark", text="", icon="X").fdp = name
+
+
+def _progress(layout, context, what):
+    """A running Adapt's or Bake's progress, in its own panel (the status bar says it too)."""
+    from . import jobs
+    s = _settings(context)
+    if s.progress_text and jobs.busy() == what:
+        _wrapped(layout, context, s.progress_text.removeprefix("HeadAdapt: "), "TIME")
 
 
 def draw_calibrate(layout, context):
@@ -139,13 +147,12 @@ def draw_adapt(layout, context):
     layout.prop(s, "max_levels")
     layout.prop(s, "drop_flagged")
     row = layout.row(align=True)
-    row.operator("headadapt.adapt", text="Adapt All Levels", icon="PLAY").levels = -1
-    row.operator("headadapt.adapt", text="Level 0 Only").levels = 0
+    row.operator("headadapt.adapt", text="Adapt", icon="PLAY").levels = -1
+    row.operator("headadapt.adapt", text="Level 0").levels = 0
     layout.prop(s, "keep_results")
-    if s.progress_text:
-        layout.label(text=s.progress_text, icon="TIME")
+    _progress(layout, context, "Adapt")
     if s.result_root is not None:
-        layout.label(text=f"Result: {s.result_root.name}", icon="CHECKMARK")
+        _wrapped(layout, context, f"Result: {s.result_root.name}", "CHECKMARK")
 
 
 def draw_display(layout, context):
@@ -169,9 +176,9 @@ def draw_display(layout, context):
 def draw_anatomy(layout, context):
     s = _settings(context)
     if s.result_root is None:
-        layout.label(text="Adapt first: the anatomy follows the adaptation", icon="INFO")
+        _wrapped(layout, context, "Adapt first: the anatomy follows the adaptation", "INFO")
     else:
-        layout.label(text="The anatomy follows the result", icon="CHECKMARK")
+        _wrapped(layout, context, "The anatomy follows the result", "CHECKMARK")
 
 
 def draw_expressions(layout, context):
@@ -181,9 +188,10 @@ def draw_expressions(layout, context):
     else:
         skin = scene.template_objects(root).get("skin")
         baked = len(json.loads(skin.get("headadapt_keys", "{}"))) if skin else 0
-        layout.label(text=f"{root.name}: {baked} baked keys" if baked else f"{root.name}: not baked yet",
-                     icon="CHECKMARK" if baked else "INFO")
+        _wrapped(layout, context, f"{baked} keys baked on {root.name}" if baked else f"{root.name}: not baked yet",
+                 "CHECKMARK" if baked else "INFO")
     layout.operator("headadapt.bake_expressions")
+    _progress(layout, context, "Bake")
     layout.operator("headadapt.import_fap", icon="IMPORT")
 
 
@@ -201,7 +209,7 @@ def draw_report(layout, context):
         for cell in cells:
             row.label(text=cell)
     if not wide:
-        table.label(text="E_d, E_m, E: widen the sidebar")
+        _wrapped(table, context, "RMS in mm, time in s; E_d, E_m, E: widen the sidebar")
     dropped = rep.get("dropped_fdps") or []
     layout.label(text="Dropped clicks: " + (", ".join(dropped) if dropped else "none"),
                  icon="X" if dropped else "CHECKMARK")
@@ -219,7 +227,8 @@ def draw_report(layout, context):
 
 
 WIDE_REPORT_CHARS = 50     # characters across the sidebar (_wrap) from which the Report shows E_d, E_m and E
-NARROW_REPORT = ("Level", "Pairs", "RMS mm", "Time s")      # the columns shown in a narrower one
+NARROW_REPORT = ("Level", "Pairs", "RMS mm", "Time s")      # the columns shown in a narrower one,
+NARROW_HEADS = {"RMS mm": "RMS", "Time s": "Time"}           # their units on a line below (cut there)
 
 
 def report_rows(rep, wide=True):
@@ -236,7 +245,8 @@ def report_rows(rep, wide=True):
                ("Time s", lambda lv: f"{lv['seconds']:.1f}")]
     shown = [(head, cell) for head, cell in columns if (wide or head in NARROW_REPORT)
              and (markers or head != "E_m mm²")]
-    return [[head for head, _ in shown]] + [[cell(lv) for _, cell in shown] for lv in rep["levels"]]
+    heads = [head if wide else NARROW_HEADS.get(head, head) for head, _ in shown]
+    return [heads] + [[cell(lv) for _, cell in shown] for lv in rep["levels"]]
 
 
 DRAW = {"TEMPLATE": draw_template, "SCAN": draw_scan, "LANDMARKS": draw_landmarks,

@@ -129,7 +129,7 @@ def over_view(area, event):
 
 
 class HEADADAPT_OT_pick_landmarks(bpy.types.Operator):
-    """Click FDPs on the scan: click places the selected FDP and moves to the next missing one, Ctrl-click removes, M mirrors, Esc ends"""
+    """Click FDPs on the scan: click places the selected FDP and moves to the next missing one, Ctrl-click removes, Ctrl-Z undoes a click, M mirrors, Esc ends"""
     bl_idname = "headadapt.pick_landmarks"
     bl_label = "Pick Landmarks"
     bl_options = {"REGISTER", "UNDO"}
@@ -137,15 +137,56 @@ class HEADADAPT_OT_pick_landmarks(bpy.types.Operator):
     @classmethod
     def poll(cls, context):
         s = context.scene.headadapt
-        return (s.scan is not None and s.scan.type == "MESH" and len(s.scan.data.polygons) > 0
-                and context.area is not None and context.area.type == "VIEW_3D")
+        if s.scan is None:
+            why = "No scan selected: pick the scan object in the Scan panel"
+        elif s.scan.type != "MESH" or len(s.scan.data.polygons) == 0:
+            why = f"The scan {s.scan.name!r} has no faces to click on"
+        elif context.area is None or context.area.type != "VIEW_3D":
+            why = "Picking works in a 3D view: press it from the 3D view's sidebar"
+        else:
+            return True
+        cls.poll_message_set(why)
+        return False
+
+    def status(self, context):
+        """The status bar says which FDP the next click places (after every click, not only the first)."""
+        k = context.scene.headadapt.active_fdp
+        context.workspace.status_text_set(f"HeadAdapt: click to place {k} ({mpeg4.FDPS[k].label}), Ctrl-click "
+                                          "removes, Ctrl-Z undoes a click, M mirrors the partner, "
+                                          "Esc/right-click ends")
 
     def invoke(self, context, event):
         add_draw_handlers()
         context.window_manager.modal_handler_add(self)
-        context.workspace.status_text_set("HeadAdapt: click to place "
-                                          f"{context.scene.headadapt.active_fdp}, Ctrl-click removes, "
-                                          "M mirrors the partner, Esc/right-click ends")
+        self.done, self.undone = [], []         # this session's changes: (clicks, suggestions, FDP) before each
+        self.status(context)
+        return {"RUNNING_MODAL"}
+
+    def snapshot(self, s):
+        sug = landmarks.SUGGESTED_PROP
+        return (landmarks.get_landmarks(s.scan), landmarks.get_landmarks(s.scan, sug) if sug in s.scan else None,
+                s.active_fdp)
+
+    def restore(self, s, state):
+        pts, sug, active = state
+        landmarks.set_landmarks(s.scan, pts)
+        if sug is not None:
+            landmarks.set_landmarks(s.scan, sug, prop=landmarks.SUGGESTED_PROP)
+        elif landmarks.SUGGESTED_PROP in s.scan:
+            del s.scan[landmarks.SUGGESTED_PROP]
+        s.active_fdp = active
+
+    def step_back(self, context, event):
+        """Ctrl-Z (Ctrl-Shift-Z) inside the picker: the last click of this session taken back (put
+        again). Blender's own undo steps in only when the picker ends, with the whole session."""
+        s = context.scene.headadapt
+        source, target = (self.undone, self.done) if event.shift else (self.done, self.undone)
+        if source:
+            target.append(self.snapshot(s))
+            self.restore(s, source.pop())
+            self.report({"INFO"}, ("redid" if event.shift else "undid") + " a click")
+        self.status(context)
+        context.area.tag_redraw()
         return {"RUNNING_MODAL"}
 
     def finish(self, context):
@@ -158,20 +199,26 @@ class HEADADAPT_OT_pick_landmarks(bpy.types.Operator):
         s = context.scene.headadapt
         if event.type in {"ESC", "RIGHTMOUSE"} and event.value == "PRESS":
             return self.finish(context)
+        if event.type == "Z" and event.value == "PRESS" and (event.ctrl or event.oskey):
+            return self.step_back(context, event)
         if event.type in {"MIDDLEMOUSE", "WHEELUPMOUSE", "WHEELDOWNMOUSE"} or event.type.startswith("NDOF"):
             return {"PASS_THROUGH"}
         if event.type in {"LEFTMOUSE", "M"} and not over_view(context.area, event):
             return {"PASS_THROUGH"}                 # the sidebar's FDP list, a header, another editor
         if event.type == "M" and event.value == "PRESS":
+            before = self.snapshot(s)
             pts = landmarks.get_landmarks(s.scan)
             guess = landmarks.mirror_suggestion(pts, s.active_fdp)
             if guess is not None:
                 pts[s.active_fdp] = guess
                 landmarks.set_landmarks(s.scan, pts)
+                self.done.append(before)
+                self.undone.clear()
                 self.report({"INFO"}, f"{s.active_fdp} placed by mirroring {mpeg4.FDPS[s.active_fdp].mirror}")
             context.area.tag_redraw()
             return {"RUNNING_MODAL"}
         if event.type == "LEFTMOUSE" and event.value == "PRESS":
+            before = self.snapshot(s)
             origin, direction = mouse_ray(context, event)
             pts = landmarks.get_landmarks(s.scan)
             if event.ctrl:
@@ -179,10 +226,14 @@ class HEADADAPT_OT_pick_landmarks(bpy.types.Operator):
                 pts, removed = landmarks.remove_near(s.scan, pts, origin, direction, 0.03 * size)
                 if removed:
                     landmarks.set_landmarks(s.scan, pts)
+                    self.done.append(before)
+                    self.undone.clear()
                     self.report({"INFO"}, f"removed {removed}")
             else:
                 pts, ok = landmarks.place(s.scan, pts, s.active_fdp, origin, direction)
                 if ok:
+                    self.done.append(before)
+                    self.undone.clear()
                     landmarks.set_landmarks(s.scan, pts)
                     sug = landmarks.get_landmarks(s.scan, landmarks.SUGGESTED_PROP)
                     if sug.pop(s.active_fdp, None) is not None:      # a moved suggestion is accepted
@@ -190,6 +241,7 @@ class HEADADAPT_OT_pick_landmarks(bpy.types.Operator):
                     nxt = landmarks.next_missing(pts, order=landmarks.GUIDED_ORDER, after=s.active_fdp)
                     if nxt:
                         s.active_fdp = nxt
+            self.status(context)
             context.area.tag_redraw()
             return {"RUNNING_MODAL"}
         return {"PASS_THROUGH"}

@@ -82,10 +82,10 @@ class HeadAdaptSettings(bpy.types.PropertyGroup):
                                          description="Show the held-out marker empties")
     show_muscles: bpy.props.BoolProperty(name="Muscles", default=False, update=_update,
                                          description="Show the muscle and sphincter curves")
-    legend_0: bpy.props.FloatVectorProperty(name="0 mm", subtype="COLOR", size=3, get=_legend(0.0))
-    legend_1: bpy.props.FloatVectorProperty(name="1 mm", subtype="COLOR", size=3, get=_legend(1.0))
-    legend_2: bpy.props.FloatVectorProperty(name="1.5 mm", subtype="COLOR", size=3, get=_legend(1.5))
-    legend_3: bpy.props.FloatVectorProperty(name="3 mm+", subtype="COLOR", size=3, get=_legend(3.0))
+    legend_0: bpy.props.FloatVectorProperty(name="0", subtype="COLOR", size=3, get=_legend(0.0))
+    legend_1: bpy.props.FloatVectorProperty(name="1", subtype="COLOR", size=3, get=_legend(1.0))
+    legend_2: bpy.props.FloatVectorProperty(name="1.5", subtype="COLOR", size=3, get=_legend(1.5))
+    legend_3: bpy.props.FloatVectorProperty(name="3+ mm", subtype="COLOR", size=3, get=_legend(3.0))
     progress_text: bpy.props.StringProperty(name="Progress", default="",
                                             description="What a running Adapt or Bake is doing")
 

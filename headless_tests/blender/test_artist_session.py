@@ -237,7 +237,8 @@ def test_report_table_reads_row_by_row_with_units(ui_scene):
     assert rows[1] == ["0", "74", "7.100", "2.61", "3.20", "7.130", "0.5"]
     assert rows[2] == ["1*", "912", "0.400", "0.61", "1.10", "0.411", "2.0"]      # the best level starred
     # a default-width sidebar: the essentials, which fit (seven columns were cut to their first letters)
-    assert panels.report_rows(rep, wide=False) == [["Level", "Pairs", "RMS mm", "Time s"], ["0", "74", "2.61", "0.5"],
+    # (a 230-pixel sidebar cut "RMS mm" to "RMS ...": the units go on a line below)
+    assert panels.report_rows(rep, wide=False) == [["Level", "Pairs", "RMS", "Time"], ["0", "74", "2.61", "0.5"],
                                                    ["1*", "912", "0.61", "2.0"]]
     texts = [t for t, _icon in layout.labels()]
     assert ("Dropped clicks: 5.1", "X") in layout.labels()
@@ -329,6 +330,10 @@ def test_adapt_from_a_button_works_on_a_thread_and_esc_leaves_the_scene_as_it_wa
             assert event("TIMER") == {"RUNNING_MODAL"}
             time.sleep(0.02)
         assert s.progress_text.startswith("HeadAdapt: ")
+        # Ctrl-Z while it runs is held (it undid Calibrate, and the finished run was then thrown away)
+        ctrl_z = SimpleNamespace(type="Z", value="PRESS", ctrl=True, oskey=False)
+        assert operators.HEADADAPT_OT_adapt.modal(op, ctx, ctrl_z) == {"RUNNING_MODAL"}
+        assert reports[-1] == ({"WARNING"}, "Adapt is running: Esc cancels it; undo waits until it has ended")
         assert event("ESC") == {"CANCELLED"}
         assert op._run.job.wait(60) and isinstance(op._run.job.error, jobs.Cancelled)
         assert sorted(o.name for o in bpy.data.objects) == before and s.result_root is None
@@ -568,7 +573,7 @@ def test_the_result_is_worth_looking_at_without_setup(ui_scene):
         # the Display panel: the toggles and the legend's values in mm
         layout = _Layout()
         panels.draw_display(layout, bpy.context)
-        assert ["0 mm", "1 mm", "1.5 mm", "3 mm+"] == [t for t, _i in layout.labels()][:4]
+        assert ["0", "1", "1.5", "3+ mm"] == [t for t, _i in layout.labels()][:4]      # "1.5 mm3 mm+" ran together
         assert tuple(s.legend_0) == pytest.approx(view.heat_colours([0.0])[0, :3])
         # toggles
         s.show_fdps = True
@@ -764,13 +769,14 @@ def test_the_picker_places_a_point_from_stand_in_events(ui_scene):
         xy = location_3d_to_region_2d(region, rv3d, nose_world)
         assert xy is not None and 0 < xy.x < region.width and 0 < xy.y < region.height
         reports = []
-        op = SimpleNamespace(report=lambda kind, text: reports.append((kind, text)))
-        op.finish = lambda context: picker.HEADADAPT_OT_pick_landmarks.finish(op, context)
+        op = SimpleNamespace(report=lambda kind, text: reports.append((kind, text)), done=[], undone=[])
+        for name in ("finish", "status", "snapshot", "restore", "step_back"):
+            setattr(op, name, getattr(picker.HEADADAPT_OT_pick_landmarks, name).__get__(op))
 
-        def event(kind, value="PRESS", ctrl=False, at=None):
+        def event(kind, value="PRESS", ctrl=False, at=None, shift=False):
             x, y = (int(round(xy.x)), int(round(xy.y))) if at is None else at       # in the region
-            e = SimpleNamespace(type=kind, value=value, ctrl=ctrl, mouse_region_x=x, mouse_region_y=y,
-                                mouse_x=region.x + x, mouse_y=region.y + y)
+            e = SimpleNamespace(type=kind, value=value, ctrl=ctrl, shift=shift, oskey=False, mouse_region_x=x,
+                                mouse_region_y=y, mouse_x=region.x + x, mouse_y=region.y + y)
             return picker.HEADADAPT_OT_pick_landmarks.modal(op, ctx, e)
 
         s.active_fdp = "9.3"
@@ -791,6 +797,12 @@ def test_the_picker_places_a_point_from_stand_in_events(ui_scene):
         hit = [(v.co - Vector(placed["9.3"])).length for v in scan.data.vertices]
         assert min(hit) < 0.02 * size                                             # local coordinates, on it
         assert s.active_fdp == "2.10"                            # the next of the 8 clicks after 9.3
+        # Ctrl-Z inside the picker takes the click back (Blender's undo did nothing until the picker
+        # ended, then took the whole session), Ctrl-Shift-Z puts it again
+        assert event("Z", ctrl=True) == {"RUNNING_MODAL"}
+        assert landmarks.get_landmarks(scan) == {} and s.active_fdp == "9.3"
+        assert event("Z", ctrl=True, shift=True) == {"RUNNING_MODAL"}
+        assert list(landmarks.get_landmarks(scan)) == ["9.3"] and s.active_fdp == "2.10"
         assert event("LEFTMOUSE", ctrl=True) == {"RUNNING_MODAL"}
         assert landmarks.get_landmarks(scan) == {} and reports[-1] == ({"INFO"}, "removed 9.3")
         assert event("ESC") == {"FINISHED"}

@@ -153,3 +153,22 @@ def test_a_fap_file_names_the_keys_the_head_has_not_baked(ui_scene, tmp_path, ca
         said = capfd.readouterr().out
         assert "0 faps, 6 expressions" in said
         assert "1 key the file asks for is not baked on 'A adapted', so not played: open_jaw" in said
+
+
+def test_a_scene_in_blender_s_default_unit_takes_the_scan_s(ui_scene):
+    # the sample scan (mm) loaded in a factory scene read as a head 250 m tall; the batch's .blend set
+    # the scan's unit, the panels did not. A scene whose unit the artist chose is left as it is.
+    import bpy
+
+    u = bpy.context.scene.unit_settings
+    with bpy.context.temp_override(**ui_scene):
+        assert (u.length_unit, u.scale_length) == ("METERS", 1.0)
+        assert bpy.ops.headadapt.load_sample_scan() == {"FINISHED"}
+        assert u.length_unit == "MILLIMETERS" and u.scale_length == pytest.approx(0.001)
+        u.length_unit, u.scale_length = "CENTIMETERS", 0.01
+        _scan("A")
+        assert bpy.ops.headadapt.adapt(levels=0) == {"FINISHED"}
+        assert u.length_unit == "CENTIMETERS" and u.scale_length == pytest.approx(0.01)
+        u.length_unit, u.scale_length = "METERS", 1.0            # back to Blender's: Adapt sets the scan's
+        assert bpy.ops.headadapt.adapt(levels=0) == {"FINISHED"}
+        assert u.length_unit == "MILLIMETERS" and u.scale_length == pytest.approx(0.001)
