@@ -9,7 +9,6 @@ import pathlib
 import numpy as np
 import pytest
 
-import headadapt_addon
 from headadapt_addon import batch
 from headadapt_addon.core import meshio
 
@@ -22,21 +21,6 @@ SCANS = {
     "nefertiti": ("nefertiti/nefertiti-lowres.obj", "nefertiti_fdps.json"),
     "headsq_ct": ("headsq_ct/headsq_skin.obj", "headsq_ct_fdps.json"),
 }
-
-
-@pytest.fixture
-def ui_scene():
-    """Factory startup (with a window and a 3D view), the add-on registered; yields an override dict."""
-    import bpy
-
-    bpy.ops.wm.read_homefile(use_empty=False, use_factory_startup=True)
-    for obj in list(bpy.data.objects):
-        bpy.data.objects.remove(obj)
-    headadapt_addon.register()
-    win = bpy.context.window_manager.windows[0]
-    area = next(a for a in win.screen.areas if a.type == "VIEW_3D")
-    yield {"window": win, "screen": win.screen, "area": area}
-    headadapt_addon.unregister()
 
 
 @pytest.mark.parametrize("name", list(SCANS))
