@@ -10,6 +10,7 @@ from ..blender import landmarks, scene
 from ..blender.scene import head_root
 from ..core import mpeg4
 from ..core.adapt import outcome as outcome_text
+from . import jobs
 
 PANELS = (
     ("TEMPLATE", "Template"),
@@ -128,7 +129,6 @@ def _fdp_row(layout, name, pts, s):
 
 def _progress(layout, context, what):
     """A running Adapt's or Bake's progress, in its own panel (the status bar says it too)."""
-    from . import jobs
     s = _settings(context)
     if s.progress_text and jobs.busy() == what:
         _wrapped(layout, context, s.progress_text.removeprefix("HeadAdapt: "), "TIME")
