@@ -47,6 +47,7 @@ import numpy as np
 ROOT = pathlib.Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
 
+from headadapt_addon.batch import spatial_backend
 from headadapt_addon.core import adapt, meshio, mpeg4
 from headadapt_addon.core.adapt import level0
 from headadapt_addon.core.mesh import geometry, spatial
@@ -110,9 +111,12 @@ def peer_nricp(tpl, scan_verts, scan_tris, clicks, sim):
 
 
 def run_methods(tpl, scan_verts, scan_tris, clicks, markers=None, nricp=True):
-    """{method: (verts in the scan frame, seconds)} and HeadAdapt's result, from the same clicks."""
+    """{method: (verts in the scan frame, seconds)} and HeadAdapt's result, from the same clicks.
+    HeadAdapt runs with the batch command's spatial backend (batch.spatial_backend(): Embree's rays
+    where embreex is installed, as requirements.txt has it; else the numpy tree)."""
     t0 = time.perf_counter()
-    res = adapt.adapt(tpl, scan_verts, scan_tris, clicks, markers=markers)
+    res = adapt.adapt(tpl, scan_verts, scan_tris, clicks, adapt.AdaptOptions(backend=spatial_backend()),
+                      markers=markers)
     out = {"headadapt": (res.verts_scan, time.perf_counter() - t0)}
     peers = [("rbf_clicks", lambda: peer_rbf(tpl, clicks, res.similarity))]
     if nricp:
@@ -143,7 +147,8 @@ def _fmt(r):
 
 def report(rows, methods, set_name):
     """Print the per-head table (worst HeadAdapt correspondence first), medians and head counts."""
-    print(f"\n== {set_name} clicks ({', '.join(CLICK_SETS[set_name])}); mm of the true head, seen face ==")
+    print(f"\n== {set_name} clicks ({', '.join(CLICK_SETS[set_name])}); mm of the true head, seen face; "
+          f"HeadAdapt's spatial backend {spatial_backend()} ==")
     head = f"{'seed':>4s} {'unit':>4s} {'noise':>5s} {'clk':>3s} {'mk':>3s} "
     sub = "corr   p95  surf  mark     s"
     print(head + " | ".join(f"{m:^29s}" for m in methods))

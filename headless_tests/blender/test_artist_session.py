@@ -81,7 +81,8 @@ def test_the_panels_and_the_batch_build_the_same_options(ui_scene):
     from headadapt_addon.ui import operators
 
     s = bpy.context.scene.headadapt
-    assert operators.adapt_options(s) == batch.adapt_options() == AdaptOptions()
+    # the core's defaults, with the batch's spatial backend (Embree's rays where embreex is installed)
+    assert operators.adapt_options(s) == batch.adapt_options() == AdaptOptions(backend=batch.spatial_backend())
     s.max_levels, s.calibration, s.drop_flagged = 2, "umeyama", False
     assert operators.adapt_options(s) == batch.adapt_options(2, "umeyama", keep_flagged=True)
     assert operators.adapt_options(s, levels=0).max_levels == 0

@@ -214,7 +214,8 @@ def test_a_bug_exits_1_with_the_traceback_in_the_log_and_the_scan_named(tmp_path
 @pytest.mark.slow
 def test_a_plain_batch_run_never_imports_blender(tmp_path, inputs):
     """python -m headadapt_addon.batch adapt without --blend runs with bpy and mathutils unimportable
-    (the spatial backend is numpy's; importing bpy costs about a second of the command)."""
+    (the spatial backend is Embree's or numpy's, never Blender's; importing bpy costs about a second of
+    the command); report.json names the backend."""
     scan, marks = inputs
     out = tmp_path / "out"
     code = ("import sys\n"
@@ -228,6 +229,8 @@ def test_a_plain_batch_run_never_imports_blender(tmp_path, inputs):
     assert proc.returncode == 0, proc.stdout + proc.stderr
     report = json.loads((out / "report.json").read_text())
     assert report["status"] == "done"
+    from headadapt_addon.core.mesh import embree
+    assert report["spatial_backend"] == ("embree" if embree.available() else "numpy")
 
 
 def _midpoint_split(verts, tris):

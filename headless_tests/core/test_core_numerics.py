@@ -137,7 +137,7 @@ def test_mesh_checks_name_the_problem():
         geometry.check_mesh(np.array([[0, 0, 0], [1, 0, 0], [np.nan, 1, 0]]), np.array([[0, 1, 2]]))
 
 
-@pytest.mark.parametrize("backend", ["numpy", "bvh"])
+@pytest.mark.parametrize("backend", ["numpy", "bvh", "embree"])
 def test_queries_match_brute_force(tpl, backend):
     v, t = tpl.skin.verts, tpl.skin.tris
     q = spatial.MeshQuery(v, t, backend=backend)
@@ -148,7 +148,7 @@ def test_queries_match_brute_force(tpl, backend):
     a, b, c = v[t[:, 0]], v[t[:, 1]], v[t[:, 2]]
     for p, dp in zip(pts[:60], d[:60]):
         cq, _ = spatial.closest_on_triangles(np.repeat(p[None], len(t), 0), a, b, c)
-        assert abs(np.linalg.norm(cq - p, axis=1).min() - dp) < (1e-12 if backend == "numpy" else 1e-6)
+        assert abs(np.linalg.norm(cq - p, axis=1).min() - dp) < (1e-6 if backend == "bvh" else 1e-12)
     dirs = rng.normal(size=(200, 3))
     dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
     hits = q.ray_cast(pts, dirs, 0.02)
@@ -157,7 +157,7 @@ def test_queries_match_brute_force(tpl, backend):
         ok = hit & (np.abs(tt) <= 0.02)
         assert ok.any() == hits.hit[k]
         if ok.any():
-            assert abs(tt[ok][np.argmin(np.abs(tt[ok]))] - hits.t[k]) < (1e-12 if backend == "numpy" else 1e-6)
+            assert abs(tt[ok][np.argmin(np.abs(tt[ok]))] - hits.t[k]) < (1e-6 if backend == "bvh" else 1e-12)
             np.testing.assert_allclose(hits.bary[k] @ v[t[hits.face[k]]], hits.point[k], atol=1e-6)
 
 

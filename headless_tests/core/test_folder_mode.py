@@ -165,7 +165,8 @@ def test_blend_and_preview_are_flags_writing_one_of_each_per_scan(tmp_path):
 
 
 def test_the_blend_writer_is_imported_only_to_write_a_blend(tmp_path):
-    """Nor bpy itself: the batch's spatial backend is numpy's, wherever the bpy module is installed."""
+    """Nor bpy itself: the batch's spatial backend is Embree's or numpy's, never Blender's, wherever the
+    bpy module is installed."""
     code = ("import sys\nfrom headadapt_addon.batch import main\n"
             f"code = main(['adapt', '--scan', {str(SAMPLE_DIR / 'scan.ply')!r}, '--landmarks', "
             f"{str(SAMPLE_DIR / 'landmarks.json')!r}, '--out', {str(tmp_path)!r}, '--levels', '0'])\n"

@@ -1,5 +1,6 @@
 """The spatial queries (core/mesh/spatial.py, core/mesh/bvh.py) against brute force over every triangle:
-the numpy tree's walks, its shells, chunks and tie rule, and the bvh backend's float64 refinement."""
+the numpy tree's walks, its shells, chunks and tie rule, the bvh backend's float64 refinement, and the
+embree backend's rays (core/mesh/embree.py: Embree's face, measured in float64)."""
 import numpy as np
 import pytest
 
@@ -115,7 +116,8 @@ def test_closest_points_are_the_brute_force_ones(skin, mesh):
 
 @pytest.mark.parametrize("mesh", ["skin", "uneven"])
 @pytest.mark.parametrize("both_ways", [True, False])
-def test_ray_hits_are_the_brute_force_ones(skin, mesh, both_ways):
+@pytest.mark.parametrize("backend", ["numpy", "embree"])
+def test_ray_hits_are_the_brute_force_ones(skin, mesh, both_ways, backend):
     verts, tris = skin if mesh == "skin" else uneven_mesh()
     scale = np.linalg.norm(np.ptp(verts[tris.ravel()], axis=0))
     rng = np.random.default_rng(4)
@@ -127,7 +129,7 @@ def test_ray_hits_are_the_brute_force_ones(skin, mesh, both_ways):
     d /= np.linalg.norm(d, axis=1, keepdims=True)
     # reaches from a tenth of an edge to past the whole mesh: every shell of the search is used
     reach = scale * np.exp(rng.uniform(np.log(1e-3), np.log(2.0), n))
-    hits = spatial.MeshQuery(verts, tris).ray_cast(o, d, reach, both_ways=both_ways)
+    hits = spatial.MeshQuery(verts, tris, backend=backend).ray_cast(o, d, reach, both_ways=both_ways)
     d = d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-300)     # to the bit as ray_cast has it
     shells = np.abs(hits.t[hits.hit]) / bvh.TriangleBVH(verts, tris).median_edge()
     assert (shells < 4).any() and (shells > 4).any()
@@ -162,7 +164,8 @@ def test_a_far_hit_met_in_a_near_shell_waits_for_the_nearer_ones():
 
 def test_rays_through_shared_edges_and_vertices(skin):
     """Rays through a shared vertex or edge: numpy answers as brute force with the rule (to the bit);
-    Blender's BVH hits there too, at the same t up to float32, on one of the faces that tie."""
+    Blender's BVH hits there too, at the same t up to float32, on one of the faces that tie; Embree
+    too, at the same t up to float64 rounding (measured on its own face)."""
     verts, tris = skin
     normals = geometry.vertex_normals(verts, tris)
     rng = np.random.default_rng(6)
@@ -176,6 +179,7 @@ def test_rays_through_shared_edges_and_vertices(skin):
     a, b, c = (verts[tris[:, j]] for j in range(3))
     numpy_hits = spatial.MeshQuery(verts, tris).ray_cast(o, d, 0.01)
     bvh_hits = spatial.MeshQuery(verts, tris, backend="bvh").ray_cast(o, d, 0.01)
+    embree_hits = spatial.MeshQuery(verts, tris, backend="embree").ray_cast(o, d, 0.01)
     for j in range(len(o)):
         t, f = brute_ray(verts, tris, o[j], unit[j], -0.01, 0.01)
         assert numpy_hits.hit[j] and numpy_hits.t[j] == t and numpy_hits.face[j] == f, (j, numpy_hits.face[j], f)
@@ -184,6 +188,7 @@ def test_rays_through_shared_edges_and_vertices(skin):
         tied = np.flatnonzero(hit & (np.abs(np.abs(tt) - abs(t)) < 1e-7))
         assert len(tied) >= 2 or j >= 30                 # through a vertex: several faces at once
         assert bvh_hits.hit[j] and abs(bvh_hits.t[j] - t) < 1e-6 and bvh_hits.face[j] in tied, (j, bvh_hits.face[j], tied)
+        assert embree_hits.hit[j] and abs(embree_hits.t[j] - t) < 1e-15 and embree_hits.face[j] in tied
 
 
 def test_closest_points_at_a_tie_follow_the_rule_on_numpy_and_are_a_tied_face_on_bvh(skin):
@@ -209,9 +214,10 @@ def test_closest_points_at_a_tie_follow_the_rule_on_numpy_and_are_a_tied_face_on
     assert (fb != fn).sum() > 5                                        # Blender's choice at a tie is its own
 
 
-def test_small_and_empty_inputs():
+@pytest.mark.parametrize("backend", ["numpy", "embree"])
+def test_small_and_empty_inputs(backend):
     verts = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [5, 5, 5]])
-    q = spatial.MeshQuery(verts, [[0, 1, 2]])
+    q = spatial.MeshQuery(verts, [[0, 1, 2]], backend=backend)
     p, f, d = q.closest_points([[0.2, 0.2, 1.0], [2.0, 0.0, 0.0]])
     np.testing.assert_allclose(p, [[0.2, 0.2, 0], [1, 0, 0]], atol=1e-15)
     assert list(f) == [0, 0] and np.allclose(d, [1.0, 1.0])
@@ -223,7 +229,7 @@ def test_small_and_empty_inputs():
     assert p.shape == (0, 3) and len(f) == 0 and len(d) == 0
     assert len(q.ray_cast(np.zeros((0, 3)), np.zeros((0, 3)), 1.0).hit) == 0
     # a mesh with no triangles: nothing near, nothing hit (the tree was not built: a max of nothing)
-    q = spatial.MeshQuery(verts, np.zeros((0, 3), int))
+    q = spatial.MeshQuery(verts, np.zeros((0, 3), int), backend=backend)
     p, f, d = q.closest_points([[0.2, 0.2, 1.0]])
     assert np.isnan(p).all() and np.isinf(d).all()
     assert not q.ray_cast([[0.2, 0.2, 1.0]], [[0, 0, -1]], 2.0).hit.any()
@@ -239,6 +245,46 @@ def test_a_hit_the_exact_test_takes_just_off_an_edge_is_found():
     h = spatial.MeshQuery(verts, [[0, 1, 2]]).ray_cast(o, d, 2.0)     # (Blender's BVH has its own slack)
     assert list(h.hit) == [True, False]
     assert h.t[0] == pytest.approx(1.0)
+
+
+def test_embree_s_hit_is_measured_in_float64_and_the_tree_answers_where_that_disagrees(skin, monkeypatch):
+    """The embree backend: a skin's rays onto a scan-like surface (the skin pushed out 1 mm) give the
+    numpy tree's t, face, point and barycentrics to the bit; a hit Embree finds just past the range's
+    end (float32; it looks a little farther) is left to the float64 range test, and the numpy tree then
+    answers that ray (here: no hit), as it does for a face the float64 test rejects."""
+    verts, tris = skin
+    normals = geometry.vertex_normals(verts, tris)
+    scan = verts + 0.001 * normals
+    rng = np.random.default_rng(11)
+    d = normals + rng.normal(0, 0.2, normals.shape)
+    exact = spatial.MeshQuery(scan, tris).ray_cast(verts, d, 0.01)
+    q = spatial.MeshQuery(scan, tris, backend="embree")
+    asked = []
+    monkeypatch.setattr(q.tree, "ray_nearest", lambda *a, f=q.tree.ray_nearest: asked.append(len(a[0])) or f(*a))
+    fast = q.ray_cast(verts, d, 0.01)
+    assert exact.hit.mean() > 0.95
+    for name in ("hit", "face"):
+        np.testing.assert_array_equal(getattr(fast, name), getattr(exact, name))
+    for name in ("t", "point", "bary"):
+        np.testing.assert_array_equal(getattr(fast, name), getattr(exact, name))
+    # a triangle at t = 1 (a 1 m triangle): reach 1 - 1e-12 misses, 1 hits, both ways or one
+    tri = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0]])
+    q = spatial.MeshQuery(tri, [[0, 1, 2]], backend="embree")
+    asked.clear()
+    monkeypatch.setattr(q.tree, "ray_nearest", lambda *a, f=q.tree.ray_nearest: asked.append(len(a[0])) or f(*a))
+    o, down = np.array([[0.2, 0.2, 1.0]] * 2), np.array([[0.0, 0, -1]] * 2)
+    for both in (True, False):
+        h = q.ray_cast(o, down, [1.0 - 1e-12, 1.0], both_ways=both)
+        assert list(h.hit) == [False, True] and h.t[1] == 1.0
+    assert asked == [1, 1]                      # the ray whose hit lay past its end, each time
+
+
+def test_the_embree_backend_is_asked_for_and_refused_by_name(monkeypatch):
+    """"embree" is the caller's choice; an unknown name is refused with the names there are."""
+    with pytest.raises(ValueError, match="numpy, bvh or embree"):
+        spatial.MeshQuery(np.eye(3), [[0, 1, 2]], backend="embre")
+    q = spatial.MeshQuery(np.eye(3), [[0, 1, 2]], backend="embree")
+    assert q.backend == "embree" and q.rays.scene is not None
 
 
 def test_large_query_sets_are_walked_in_chunks(skin, monkeypatch):

@@ -113,8 +113,10 @@ class AdaptOptions:
                                         # 19% faster, but the skull pressed under that skin folded 23 triangles
                                         # instead of 9 on legacy head 7: the transfer is that sensitive)
     backend: str = "numpy"              # spatial queries: "numpy" (core/mesh/bvh.py: exact, no Blender, as fast
-                                        # as Blender's) or "bvh" (Blender's mathutils BVH: in Blender or beside
-                                        # the bpy module; same answers up to float32 rounding and tie-breaks)
+                                        # as Blender's), "embree" (rays by Intel Embree, the embreex package,
+                                        # measured again in float64: the adaptation in about 0.8 of the time)
+                                        # or "bvh" (Blender's mathutils BVH: in Blender or beside the bpy
+                                        # module); the same answers up to float32 rounding and tie-breaks
 
 
 @dataclasses.dataclass
@@ -177,6 +179,7 @@ class AdaptResult:
                                 if self.best_level < self.levels[-1].level else "last level reached"),
             "seconds": self.seconds,
             "stage_seconds": self.stages or {},
+            "spatial_backend": self.backend,
             "calibration": self.calibration_info,
             "flagged_fdps": self.flagged,
             "dropped_fdps": self.dropped,

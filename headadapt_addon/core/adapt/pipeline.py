@@ -177,7 +177,7 @@ def calibrate(tpl: Template, scan_verts: np.ndarray, scan_tris: np.ndarray, scan
     scan_tris, mixed = repair.consistent_winding(scan_tris, len(sv)) if clustered is None else (scan_tris, 0)
     # the scan's spatial tree, begun on a worker thread before the winding check below: kept unless it
     # turns a piece (a turned triangle's corners come in another order, and so its rounding)
-    early = start_spatial(sv, scan_tris, options) if options.backend == "numpy" else None
+    early = start_spatial(sv, scan_tris, options) if options.backend != "bvh" else None
     # normals out of the head, whatever winding the file has (pairs are matched by normals)
     # (the triangles' cross products and their sums per vertex serve the check and the scan's normals:
     # computed once, the products again only for the triangles turned, the sums then anew)

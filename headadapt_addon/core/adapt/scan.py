@@ -21,10 +21,10 @@ BORDER_WIDTH = 0.5     # a scan point this many median edges from the border is 
 
 
 def start_spatial(verts, tris, options):
-    """The scan's spatial side (see ScanSide._ready): a future of the pool for the numpy backend (made on a
-    worker thread), made here for Blender's tree (backend "bvh": on the calling thread)."""
+    """The scan's spatial side (see ScanSide._ready): a future of the pool for the numpy and embree
+    backends (made on a worker thread), made here for Blender's tree (backend "bvh": on the calling thread)."""
     make = lambda: _spatial_side(verts, tris, options.backend, options.dense_spacing)
-    return threads.pool().submit(make) if options.backend == "numpy" else make()
+    return make() if options.backend == "bvh" else threads.pool().submit(make)
 
 
 def _spatial_side(verts, tris, backend, dense_spacing):
