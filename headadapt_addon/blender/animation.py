@@ -215,8 +215,10 @@ def import_fap(root, anim, start=1):
     asked beyond its slider range gets its range widened, up to Blender's -10..10; beyond that it is
     cut there and named in "clipped". Everything is checked before anything changes: HeadAdaptError
     for a file with no frames, longer than Blender's timeline or at a frame rate its scene cannot
-    hold. Returns {what: count keyed, "clipped": {key: the largest value asked}, "unbaked": [the keys the
-    file asks for that are not baked on the head]}.
+    hold. An inner lip FAP and its outer one given at the same frames play half each (one lip's motion).
+    Returns {what: count the file asks for and the head plays (faps, expressions, visemes, head turns),
+    "lip_pairs_halved": how many such pairs, "clipped": {key: the largest value asked}, "unbaked": [the
+    keys the file asks for that are not baked on the head]}.
     """
     full = float(mpeg4.INTENSITY_MAX)
     objs = scene.template_objects(root)
@@ -234,15 +236,23 @@ def import_fap(root, anim, start=1):
         raise HeadAdaptError(f"a frame rate of {anim.fps:g} fps is beyond what a Blender scene can play")
     frames = (anim.frames - anim.frames[0]).astype(np.float64) + start
     curves = {}                                            # key name -> (frames, values)
-    counts = {"faps": 0, "expressions": 0, "visemes": 0, "head": 0}
+    counts = {"faps": 0, "expressions": 0, "visemes": 0, "head": 0, "lip_pairs_halved": 0}
     unbaked = []                                           # keys the file asks for that the head lacks
     for number, fap in mpeg4.FAPS.items():
         col = anim.values[:, number]
         given = ~np.isnan(col)
-        if fap.kind == "high" or not given.any():
+        if fap.kind == "high" or not given.any() or fap.name in FAP_HEAD:    # the head turns its root
             continue
         if fap.name in info and info[fap.name].get("fap_units"):
-            curves[fap.name] = (frames[given], col[given] / info[fap.name]["fap_units"])
+            value = col / info[fap.name]["fap_units"]
+            # an inner lip FAP (4-13) and its outer one (51-60) drive the same muscles, so their keys
+            # are one lip's motion: where a file gives both, each plays half (their mean), not twice
+            pair = mpeg4.FAP_BY_NAME.get(fap.name[:-2] if fap.name.endswith("_o") else f"{fap.name}_o")
+            if pair is not None and pair.name in info:
+                both = given & ~np.isnan(anim.values[:, pair.number])
+                value = np.where(both, 0.5 * value, value)
+                counts["lip_pairs_halved"] += bool(both.any()) and fap.name.endswith("_o")
+            curves[fap.name] = (frames[given], value[given])
             counts["faps"] += 1
         elif fap.name not in info:
             unbaked.append(fap.name)
@@ -252,10 +262,10 @@ def import_fap(root, anim, start=1):
         asked = set(ex[rows, 0].astype(int)) | set(ex[rows, 2][~np.isnan(ex[rows, 2])].astype(int))
         unbaked += [name for i, name in enumerate(mpeg4.EXPRESSIONS, start=1) if i in asked and name not in info]
         for i, name in enumerate(mpeg4.EXPRESSIONS, start=1):
-            if name in info:
+            if name in info:        # every baked one is keyed (0 where not asked), so the file plays alone
                 w = (np.where(ex[rows, 0] == i, ex[rows, 1], 0.0) + np.where(ex[rows, 2] == i, ex[rows, 3], 0.0)) / full
                 curves[name] = (frames[rows], w)
-                counts["expressions"] += 1
+                counts["expressions"] += i in asked
     vi = anim.visemes
     if (~np.isnan(vi[:, 0])).any():
         rows = ~np.isnan(vi[:, 0])
@@ -268,7 +278,7 @@ def import_fap(root, anim, start=1):
             if key in info:
                 w = np.where(vi[rows, 0] == number, blend, 0.0) + np.where(vi[rows, 1] == number, 1.0 - blend, 0.0)
                 curves[key] = (frames[rows], w)
-                counts["visemes"] += 1
+                counts["visemes"] += number in asked
     clear_animation(root, set(info))
     sc = bpy.context.scene
     sc.render.fps, sc.render.fps_base = rate

@@ -1,6 +1,8 @@
 """Several scans and heads in one session (a stranger's artist session, stop 50): a second scan's Adapt
 keeps the first scan's head, the panels follow the scan chosen, Bake acts on the head selected and
 writes keys that survive Edit Mode, and a scan that cannot be fitted as drawn is refused by name."""
+import json
+
 import numpy as np
 import pytest
 
@@ -117,7 +119,8 @@ def test_a_scan_scaled_unevenly_or_deleted_is_refused_by_name(ui_scene):
 
 def test_a_fap_file_names_the_keys_the_head_has_not_baked(ui_scene, tmp_path, capfd):
     # a head baked with the expressions only, given a .fap that opens the jaw: it said "0 faps" and
-    # nothing of the key it could not play
+    # nothing of the key it could not play. The head's turn (played by the root, not a key) was
+    # named unbaked too, and the count named every baked expression, not the two the file asks for
     import bpy
 
     from headadapt_addon.core import mpeg4
@@ -129,14 +132,49 @@ def test_a_fap_file_names_the_keys_the_head_has_not_baked(ui_scene, tmp_path, ca
         assert bpy.ops.headadapt.bake_expressions(sets={"expression"}) == {"FINISHED"}
         vals = np.full((2, mpeg4.N_FAPS + 1), np.nan)
         vals[:, 3] = [0, 512]                                   # open_jaw
+        vals[:, mpeg4.FAP_BY_NAME["head_yaw"].number] = [0, 20000]
         expr = np.full((2, 6), np.nan)
         expr[:, :2] = [[1, 63], [6, 63]]                        # joy, then surprise: baked
         write_fap(tmp_path / "jaw.fap", FapAnimation("jaw", 25.0, np.arange(2), vals, np.full((2, 4), np.nan), expr))
         capfd.readouterr()
         assert bpy.ops.headadapt.import_fap(filepath=str(tmp_path / "jaw.fap")) == {"FINISHED"}
         said = capfd.readouterr().out
-        assert "0 faps, 6 expressions" in said
-        assert "1 key the file asks for is not baked on 'A adapted', so not played: open_jaw" in said
+        assert "0 faps, 2 expressions, 0 visemes, 1 head" in said
+        assert "1 key the file asks for is not baked on 'A adapted', so not played: open_jaw (" in said
+
+
+def test_inner_and_outer_lip_faps_given_together_play_one_lip_motion(ui_scene, tmp_path, capfd):
+    # FAPs 4-13 (inner lip) and 51-60 (outer lip) drive the same muscles, so their keys are the same
+    # motion: a file giving both (as trackers write them) moved the lip about twice as far
+    import bpy
+
+    from headadapt_addon.core import mpeg4
+    from headadapt_addon.core.fapfile import FapAnimation, write_fap
+
+    with bpy.context.temp_override(**ui_scene):
+        _scan("A")
+        assert bpy.ops.headadapt.adapt(levels=0) == {"FINISHED"}
+        assert bpy.ops.headadapt.bake_expressions(sets={"fap"}) == {"FINISHED"}
+        root = bpy.context.scene.objects["A adapted"]
+        keys = bpy.data.objects["A skin"].data.shape_keys.key_blocks
+        inner, outer = mpeg4.FAP_BY_NAME["lower_t_midlip"], mpeg4.FAP_BY_NAME["lower_t_midlip_o"]
+        units = {k: v["fap_units"] for k, v in json.loads(bpy.data.objects["A skin"]["headadapt_keys"]).items()}
+        played = {}
+        for name, which in (("inner", [inner]), ("both", [inner, outer])):
+            vals = np.full((2, mpeg4.N_FAPS + 1), np.nan)
+            for fap in which:
+                vals[:, fap.number] = [0, 100]
+            write_fap(tmp_path / f"{name}.fap", FapAnimation(name, 25.0, np.arange(2), vals, np.full((2, 4), np.nan),
+                                                             np.full((2, 6), np.nan)))
+            capfd.readouterr()
+            assert bpy.ops.headadapt.import_fap(filepath=str(tmp_path / f"{name}.fap")) == {"FINISHED"}
+            said = capfd.readouterr().out
+            assert ("1 inner and outer lip FAP pair given together, each played at half" in said) == (name == "both")
+            bpy.context.scene.frame_set(2)
+            played[name] = (keys[inner.name].value, keys[outer.name].value)
+        assert played["inner"] == pytest.approx((100 / units[inner.name], 0.0), rel=1e-6)
+        assert played["both"] == pytest.approx((50 / units[inner.name], 50 / units[outer.name]), rel=1e-6)
+        assert root.name == "A adapted"
 
 
 def test_a_scene_in_blender_s_default_unit_takes_the_scan_s(ui_scene):
