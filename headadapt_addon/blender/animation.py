@@ -28,13 +28,52 @@ def stored_anatomy(tpl, root):
                          f"HeadAdapt 0.1 kept it in their objects only)")
 
 
-def write_shape_keys(root, keys):
-    """Add the baked keys as shape keys on the head's part objects; record them on the skin object."""
+def written_rest(tpl, anatomy):
+    """(parts, jaw pivot) of a head hierarchy as HeadAdapt wrote it (root frame, metres; the jaw's parts
+    relative to the pivot): the anatomy's, else (the template's own hierarchy) the template's."""
+    if anatomy is not None:
+        return anatomy.parts, np.asarray(anatomy.jaw_pivot, dtype=float)
+    return {k: p.verts for k, p in tpl.parts.items()}, np.asarray(tpl.meta["jaw"]["pivot"], dtype=float)
+
+
+def moved_frame(obj, written):
+    """The similarity taking a part's coordinates as HeadAdapt wrote them (`written`, (n,3)) onto its
+    mesh now, where the artist has since applied the head's scale, rotation or location (Ctrl-A: the
+    mesh changed by a similarity, the object's transform the other way); None where the mesh is as
+    written (to float32) or was changed otherwise (edited: the keys keep the written frame)."""
+    from ..core.adapt.calibration import umeyama
+    now = bridge.vertex_positions(obj.data)
+    if now.shape != np.shape(written):
+        return None
+    size = max(float(np.ptp(written, axis=0).max()), 1e-12)
+    if np.abs(now - written).max() <= 1e-5 * size:
+        return None
+    sim = umeyama(written, now)
+    return sim if np.abs(sim.apply(written) - now).max() <= 1e-5 * size * sim.scale else None
+
+
+def write_shape_keys(root, keys, rest=None):
+    """Add the baked keys as shape keys on the head's part objects; record them on the skin object.
+    rest: written_rest of the anatomy baked; a part whose mesh the artist has since moved by a
+    similarity (Apply Scale, a head in mm made 1 unit = 1 mm) gets its keys in that frame too."""
     objs = scene.template_objects(root)
     pivot = np.array(objs["jaw_pivot"].location)
+    frames = {}                                        # part -> (similarity, offset) where it moved
+    if rest is not None:
+        parts, written_pivot = rest
+        for part in {p for key in keys for p in key.moved}:
+            offset = written_pivot if part in JAW_CHILDREN else 0.0
+            sim = moved_frame(objs[part], parts[part] - offset)
+            if sim is not None:
+                frames[part] = (sim, offset)
     for key in keys:
         for part, verts in key.moved.items():
-            block = bridge.add_shape_key(objs[part], key.name, verts - (pivot if part in JAW_CHILDREN else 0.0))
+            if part in frames:
+                sim, offset = frames[part]
+                local = sim.apply(verts - offset)
+            else:
+                local = verts - (pivot if part in JAW_CHILDREN else 0.0)
+            block = bridge.add_shape_key(objs[part], key.name, local)
             block.slider_min, block.slider_max = -1.0, 3.0
     info = json.loads(objs["skin"].get("headadapt_keys", "{}"))
     info.update({k.name: {"kind": k.kind, "parts": sorted(k.moved), "fap_units": k.fap_units} for k in keys})
@@ -102,11 +141,25 @@ def preview_action(root, names=mpeg4.EXPRESSIONS, frames_each=PREVIEW_FRAMES, st
 
 def head_pivot(root):
     """The point the head turns about (FDP 7.1, the top of the spine), in root's frame: stored on the
-    root by scene.add_template (the template's) and blendout.build_result_objects (the adapted one)."""
+    root by scene.add_template (the template's) and blendout.build_result_objects (the adapted one),
+    moved with the skin where the artist has applied the head's scale since (moved_frame)."""
+    from ..core.template import bundled_template
     if "headadapt_head_pivot" in root:
-        return np.array(root["headadapt_head_pivot"], dtype=float)
-    from ..core.template import bundled_template  # a head made before the pivot was stored
-    return np.asarray(bundled_template().meta["head_pivot"], dtype=float)
+        pivot = np.array(root["headadapt_head_pivot"], dtype=float)
+    else:                                           # a head made before the pivot was stored
+        pivot = np.asarray(bundled_template().meta["head_pivot"], dtype=float)
+    skin = scene.template_objects(root).get("skin")
+    if skin is None or skin.parent != root:
+        return pivot
+    tpl = bundled_template()
+    try:
+        written = written_rest(tpl, stored_anatomy(tpl, root))[0]["skin"]
+    except HeadAdaptError:
+        return pivot
+    sim = moved_frame(skin, written)
+    if sim is None:
+        return pivot
+    return (np.array(skin.matrix_local) @ np.r_[sim.apply(pivot), 1.0])[:3]
 
 
 def clear_animation(root, names):

@@ -88,13 +88,14 @@ def bake_result(tpl, root, kinds=("expression", "viseme", "fap", "arkit"), previ
     if anatomy is None:
         anatomy = animation.stored_anatomy(tpl, root)
     keys, timing = bake.bake(tpl, anatomy, kinds=kinds, progress=progress)
-    return apply_bake(root, keys, timing, kinds, preview)
+    return apply_bake(root, keys, timing, kinds, preview, animation.written_rest(tpl, anatomy))
 
 
-def apply_bake(root, keys, timing, kinds, preview=True):
+def apply_bake(root, keys, timing, kinds, preview=True, rest=None):
     """Write baked keys (core.skin.bake.bake's) to root's shape keys (+ the preview action); timings.
-    The bake itself is numpy only: the panels run it on a worker thread and this in the main thread."""
-    animation.write_shape_keys(root, keys)
+    The bake itself is numpy only: the panels run it on a worker thread and this in the main thread.
+    rest: animation.written_rest of the anatomy baked (keys follow a part the artist has moved)."""
+    animation.write_shape_keys(root, keys, rest)
     if preview and "expression" in kinds:
         animation.preview_action(root)
     return {"keys": len(keys), "build_s": timing["build_s"], "per_key_s": timing["per_key_s"],

@@ -571,6 +571,7 @@ class BakeRun(Run):
         from ..core.skin import bake
         self.root, self.kinds, self.preview = root, kinds, preview
         tpl, anatomy = template(), animation.stored_anatomy(template(), root)
+        self.rest = animation.written_rest(tpl, anatomy)
 
         def work(say):
             return bake.bake(tpl, anatomy, kinds=kinds, progress=lambda f, name: say(f, f"baking {name}"))
@@ -586,7 +587,7 @@ class BakeRun(Run):
         jobs.show_progress(context, 1.0, "writing the shape keys")
         # keys written under Edit Mode are lost when it is left (its own copy of the mesh wins)
         left = leave_edit_mode(context, self.root)
-        timing = blendout.apply_bake(self.root, *value, self.kinds, self.preview)
+        timing = blendout.apply_bake(self.root, *value, self.kinds, self.preview, self.rest)
         cores = f", {timing['helper_keys']} of them on a second core" if timing["helper_keys"] else ""
         report({"INFO"}, f"baked {timing['keys']} shape keys on {self.root.name!r} "
                          f"({timing['per_key_s'] * 1000:.0f} ms per key{cores})"

@@ -194,3 +194,59 @@ def test_a_scene_in_blender_s_default_unit_takes_the_scan_s(ui_scene):
         u.length_unit, u.scale_length = "METERS", 1.0            # back to Blender's: Adapt sets the scan's
         assert bpy.ops.headadapt.adapt(levels=0) == {"FINISHED"}
         assert u.length_unit == "MILLIMETERS" and u.scale_length == pytest.approx(0.001)
+
+
+def _world_key(obj, key):
+    """World coordinates of obj's Basis and of its key `key` at 1 (n,3 each)."""
+    kb = obj.data.shape_keys.key_blocks
+    m = np.array(obj.matrix_world)
+    return [np.array([p.co[:] for p in kb[k].data]) @ m[:3, :3].T + m[:3, 3] for k in ("Basis", key)]
+
+
+def test_keys_baked_after_apply_scale_move_the_head_as_before(ui_scene, tmp_path):
+    # Apply Scale on the adapted head (its root scaled about 1000x, a scene in mm) and a new Bake wrote
+    # the keys in the old metre frame: at 1, surprise took the skin hundreds of mm toward the origin,
+    # and a .fap's head turn no longer turned about the top of the spine
+    import bpy
+
+    from headadapt_addon.blender import animation
+    from headadapt_addon.core import mpeg4
+    from headadapt_addon.core.fapfile import FapAnimation, write_fap
+
+    with bpy.context.temp_override(**ui_scene):
+        _scan("A")
+        assert bpy.ops.headadapt.adapt(levels=0) == {"FINISHED"}
+        assert bpy.ops.headadapt.bake_expressions(sets={"expression"}, preview=False) == {"FINISHED"}
+        root = bpy.context.scene.objects["A adapted"]
+        skin, jaw = (bpy.data.objects[f"A {p}"] for p in ("skin", "mandible"))
+        before = {o.name: _world_key(o, "surprise") for o in (skin, jaw)}
+        pivot = np.array(root.matrix_world) @ np.r_[animation.head_pivot(root), 1.0]
+        assert np.linalg.norm(before[skin.name][1] - before[skin.name][0], axis=1).max() > 5.0   # mm: it moves
+        bpy.ops.object.select_all(action="DESELECT")
+        for o in [root, *root.children_recursive]:
+            o.select_set(True)
+        bpy.context.view_layer.objects.active = root
+        assert bpy.ops.object.transform_apply(location=False, rotation=False, scale=True) == {"FINISHED"}
+        assert np.allclose(root.scale, 1.0)
+        bpy.ops.object.select_all(action="DESELECT")
+        bpy.context.view_layer.objects.active = root
+        root.select_set(True)
+        assert bpy.ops.headadapt.bake_expressions(sets={"expression"}, preview=False) == {"FINISHED"}
+        for o in (skin, jaw):
+            rest, moved = _world_key(o, "surprise")
+            np.testing.assert_allclose(rest, before[o.name][0], atol=1e-3)          # mm of the world
+            np.testing.assert_allclose(moved, before[o.name][1], atol=1e-3)
+        np.testing.assert_allclose(np.array(root.matrix_world) @ np.r_[animation.head_pivot(root), 1.0], pivot,
+                                   atol=1e-3)
+        vals = np.full((2, mpeg4.N_FAPS + 1), np.nan)
+        vals[:, mpeg4.FAP_BY_NAME["head_yaw"].number] = [0, 20000]
+        expr = np.full((2, 6), np.nan)
+        expr[:, :2] = [[6, 0], [6, 63]]
+        write_fap(tmp_path / "yaw.fap", FapAnimation("yaw", 25.0, np.arange(2), vals, np.full((2, 4), np.nan), expr))
+        assert bpy.ops.headadapt.import_fap(filepath=str(tmp_path / "yaw.fap")) == {"FINISHED"}
+        bpy.context.scene.frame_set(1)
+        still = np.array(root.matrix_world)
+        bpy.context.scene.frame_set(2)
+        assert np.abs(np.array(root.matrix_world)[:3, :3] - still[:3, :3]).max() > 0.1     # it turned
+        np.testing.assert_allclose(np.array(root.matrix_world) @ np.r_[animation.head_pivot(root), 1.0], pivot,
+                                   atol=1e-3)
