@@ -87,7 +87,8 @@ def _fcurve_set(id_data, path, frames, values, index=-1):
         id_data.animation_data_create()
     action = id_data.animation_data.action
     if action is None:
-        action = bpy.data.actions.new(f"HeadAdapt {id_data.name}")
+        owner = getattr(id_data, "user", None) or id_data       # a shape-key block: named by its mesh
+        action = bpy.data.actions.new(f"HeadAdapt {owner.name}")
         id_data.animation_data.action = action
     id_data.keyframe_insert(path, index=index, frame=float(frames[0]))   # creates the F-curve (any action API)
     fc = next(f for f in _fcurves(id_data) if f.data_path == path and (index < 0 or f.array_index == index))

@@ -250,3 +250,29 @@ def test_keys_baked_after_apply_scale_move_the_head_as_before(ui_scene, tmp_path
         assert np.abs(np.array(root.matrix_world)[:3, :3] - still[:3, :3]).max() > 0.1     # it turned
         np.testing.assert_allclose(np.array(root.matrix_world) @ np.r_[animation.head_pivot(root), 1.0], pivot,
                                    atol=1e-3)
+
+
+def test_the_preview_exports_to_gltf_as_one_clip_named_by_its_meshes(ui_scene, tmp_path):
+    # the preview's actions were named after Blender's shape-key blocks ("HeadAdapt Key.003"), which say
+    # nothing of the head; glTF's default export gives one clip per part (README: "Active actions merged")
+    import struct
+
+    import bpy
+
+    with bpy.context.temp_override(**ui_scene):
+        _scan("A")
+        assert bpy.ops.headadapt.adapt(levels=0) == {"FINISHED"}
+        assert bpy.ops.headadapt.bake_expressions(sets={"expression"}) == {"FINISHED"}
+        root = bpy.context.scene.objects["A adapted"]
+        named = sorted(o.data.shape_keys.animation_data.action.name for o in root.children_recursive
+                       if o.type == "MESH" and o.data.shape_keys and o.data.shape_keys.animation_data)
+        assert named == ["HeadAdapt A mandible", "HeadAdapt A skin", "HeadAdapt A teeth_lower", "HeadAdapt A tongue"]
+        clips = {}
+        for mode in ("ACTIONS", "ACTIVE_ACTIONS"):
+            path = tmp_path / f"{mode}.glb"
+            assert bpy.ops.export_scene.gltf(filepath=str(path), export_format="GLB",
+                                             export_animation_mode=mode) == {"FINISHED"}
+            data = path.read_bytes()
+            clips[mode] = json.loads(data[20:20 + struct.unpack("<I", data[12:16])[0]]).get("animations", [])
+        assert len(clips["ACTIONS"]) == 4 and len(clips["ACTIVE_ACTIONS"]) == 1
+        assert len(clips["ACTIVE_ACTIONS"][0]["channels"]) == 4
