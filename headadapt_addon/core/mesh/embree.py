@@ -30,23 +30,34 @@ class EmbreeRays:
     """Nearest ray hits on one triangle mesh by Embree, checked in float64 (see the module)."""
 
     def __init__(self, verts: np.ndarray, tris: np.ndarray, tree):
-        from embreex import rtcore_scene
-        from embreex.mesh_construction import TriangleMesh
+        from embreex import rtcore_scene  # noqa: F401  (refused here, not at the first ray, if missing)
 
         self.verts, self.tris, self.tree = verts, tris, tree     # tree: the numpy TriangleBVH (fallback)
-        self.origin = verts.min(axis=0) if len(verts) else np.zeros(3)
-        self.scene = None
-        if len(tris):
-            # coordinates about the mesh's corner, so float32 keeps ~1e-7 of its size wherever it lies
-            self.scene = rtcore_scene.EmbreeScene(robust=True)
-            TriangleMesh(self.scene, (verts - self.origin).astype(np.float32), tris.astype(np.int32))
+        self._scene = []                    # made at the first ray: a query used for closest points only
+        #                                     (the deformed skin's, each level) never builds it
+
+    @property
+    def scene(self):
+        """The Embree scene of the mesh (None without triangles), built once."""
+        if not self._scene:
+            from embreex import rtcore_scene
+            from embreex.mesh_construction import TriangleMesh
+
+            scene = None
+            self.origin = self.verts.min(axis=0) if len(self.verts) else np.zeros(3)
+            if len(self.tris):
+                # coordinates about the mesh's corner, so float32 keeps ~1e-7 of its size wherever it lies
+                scene = rtcore_scene.EmbreeScene(robust=True)
+                TriangleMesh(scene, (self.verts - self.origin).astype(np.float32), self.tris.astype(np.int32))
+            self._scene.append(scene)
+        return self._scene[0]
 
     def nearest(self, o, d, lo, hi):
         """(t (nan: none), face, bary) of each ray o + t d (d unit), the nearest hit by |t| with
         lo <= t <= hi, as TriangleBVH.ray_nearest answers (see the module for where they can differ)."""
         n = len(o)
         t_out, f_out, bary_out = np.full(n, np.nan), np.zeros(n, np.int64), np.zeros((n, 3))
-        if self.scene is None or not n:
+        if not n or self.scene is None:
             return t_out, f_out, bary_out
         finite = np.isfinite(o).all(axis=1) & np.isfinite(d).all(axis=1)
         unsure = np.zeros(n, bool)
