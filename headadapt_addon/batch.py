@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import argparse
 import collections
+import contextlib
 import hashlib
 import json
 import os
@@ -132,8 +133,27 @@ def build_parser():
     return parser
 
 
+def _say(line, stream) -> None:
+    """Write a line to a standard stream so that a reader gone (a monitor's `| head`: broken pipe) or an
+    encoding that cannot spell a scan's name (PYTHONIOENCODING=latin-1) never stops the run: the first
+    sends the stream's later lines to /dev/null, the second writes the name with escapes."""
+    try:
+        try:
+            print(line, file=stream, flush=True)
+        except UnicodeEncodeError:
+            encoding = getattr(stream, "encoding", None) or "ascii"
+            print(line.encode(encoding, "backslashreplace").decode(encoding), file=stream, flush=True)
+    except BrokenPipeError:
+        with contextlib.suppress(OSError, ValueError):
+            os.dup2(os.open(os.devnull, os.O_WRONLY), stream.fileno())
+
+
+def _stdout(line):
+    _say(line, sys.stdout)
+
+
 def _stderr(line):
-    print(line, file=sys.stderr, flush=True)
+    _say(line, sys.stderr)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -186,6 +206,19 @@ def remove_results(paths) -> None:
             raise FileFormatError(f"cannot replace {path}: {exc.strerror or exc}") from None
 
 
+def remove_temporaries(paths) -> None:
+    """Delete what an atomic write of each path leaves when its process is killed mid-write: the hidden
+    ".NAME.*" files (meshio.write_atomic, the .blend's) and ".STEM.*" folders (the preview's) beside it."""
+    import shutil
+
+    for path in map(pathlib.Path, paths):
+        if not path.parent.is_dir():
+            continue
+        for left in {*path.parent.glob(f".{path.name}.*"), *path.parent.glob(f".{path.stem}.*")}:
+            with contextlib.suppress(OSError):
+                shutil.rmtree(left) if left.is_dir() else left.unlink()
+
+
 def check_writable(outputs: dict[str, pathlib.Path]) -> None:
     """FileFormatError (exit 2) naming the first output whose folder cannot be made or written, found
     before the run rather than after its fit (a file in the folder's place, no permission, /proc): a
@@ -207,9 +240,46 @@ def check_writable(outputs: dict[str, pathlib.Path]) -> None:
             raise FileFormatError(f"cannot write {out} ({what}): {exc.strerror or exc}") from None
 
 
-def failed_before(outputs: dict[str, pathlib.Path]) -> set:
+@contextlib.contextmanager
+def holding(out_dir: os.PathLike | str):
+    """Hold the output folder for this run (an exclusive flock on the folder itself): a second HeadAdapt
+    run into it while this one lasts is refused (FileFormatError: exit 2), as two runs writing the same
+    files would leave reports that contradict their results. Yields whether the folder is held (False
+    where flock is missing or cannot lock a folder: Windows, NFS). The lock ends with the process, however it ends (kill -9 too), so
+    nothing is left to clean; a folder made here for it and left empty is removed."""
+    from .core.exceptions import FileFormatError
+
+    out = pathlib.Path(out_dir)
+    made = not out.exists()
+    try:
+        import fcntl
+        out.mkdir(parents=True, exist_ok=True)
+        fd = os.open(out, os.O_RDONLY)
+    except (ImportError, OSError):          # no flock here, or a folder that cannot be made (checked later)
+        yield False
+        return
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            held = True
+        except BlockingIOError:
+            raise FileFormatError(f"{out}: another HeadAdapt run is writing into this folder now; wait for it "
+                                  "to end, or give another --out") from None
+        except OSError:                   # a file system that cannot lock a folder (NFS emulates flock with
+            held = False                  # a write lock, refused on a folder): the run goes on unguarded
+        yield held
+    finally:
+        os.close(fd)
+        if made:
+            with contextlib.suppress(OSError):
+                out.rmdir()               # only if this run left it empty (bad input)
+
+
+def failed_before(outputs: dict[str, pathlib.Path], held: bool = False) -> set:
     """{the report} when the only output there is a report.json of a run that failed or was interrupted:
-    it holds an error, no result, so a run after the input is mended may replace it without --overwrite."""
+    it holds an error, no result, so a run after the input is mended may replace it without --overwrite.
+    With the folder held (holding), a report still "running" is one whose run was killed (SIGTERM, kill
+    -9, a lost machine): replaceable too."""
     report = outputs["report"]
     if any(path.exists() for what, path in outputs.items() if what != "report"):
         return set()
@@ -217,7 +287,7 @@ def failed_before(outputs: dict[str, pathlib.Path]) -> set:
         status = json.loads(report.read_text()).get("status")
     except (OSError, ValueError, AttributeError):
         return set()
-    return {report} if status in ("failed", "interrupted") else set()
+    return {report} if status in ("failed", "interrupted") or (held and status == "running") else set()
 
 
 def file_sha256(path: os.PathLike | str) -> str:
@@ -261,14 +331,26 @@ def earlier_outputs(out_dir, inputs) -> list[pathlib.Path]:
 
 
 def run_adapt(scan_path, landmarks_path, out_dir, levels=None, calibration="auto", keep_flagged=False,
-              blend=None, overwrite=False, run_id=None, log=print, warn=_stderr, preview=None):
+              blend=None, overwrite=False, run_id=None, log=_stdout, warn=_stderr, preview=None):
     """Adapt the template onto one scan file; write adapted_head.obj (+ the .blend) and report.json last,
     all atomically; return the report. Progress goes to log, one line per warning to warn;
     report["outcome"]["ok"] says whether the fit can be trusted (main: exit code 3 if not).
 
-    Refuses (FileFormatError) an output that is an input and, unless overwrite, any existing result;
-    with overwrite the earlier results are deleted first. Any failure after that leaves report.json
-    with "status": "failed" and the error (and no result beside it), then raises."""
+    Refuses (FileFormatError) an output that is an input, a second run into out_dir while this one
+    lasts (holding) and, unless overwrite, any existing result but the report of a run that failed,
+    was interrupted or was killed; with overwrite the earlier results are deleted first. Any failure
+    after that leaves report.json with "status": "failed" and the error (and no result beside it),
+    then raises."""
+    made = not pathlib.Path(out_dir).exists()
+    with holding(out_dir) as held:
+        return _run_adapt(scan_path, landmarks_path, out_dir, levels, calibration, keep_flagged, blend, overwrite,
+                          run_id, log, warn, preview, held, made)
+
+
+def _run_adapt(scan_path, landmarks_path, out_dir, levels, calibration, keep_flagged, blend, overwrite, run_id,
+               log, warn, preview, held, made=False):
+    """run_adapt's work, the output folder held (or not, where flock is missing: held False); made: the
+    folder was made for this run (input refused before anything was written there: nothing is)."""
     from .core import __version__, meshio
     from .core.adapt import outcome as outcome_text
     from .core.exceptions import FileFormatError, HeadAdaptError
@@ -277,7 +359,7 @@ def run_adapt(scan_path, landmarks_path, out_dir, levels=None, calibration="auto
     out_dir = pathlib.Path(out_dir)
     outputs = result_paths(out_dir, blend, preview)
     check_outputs([pathlib.Path(scan_path), pathlib.Path(landmarks_path)], outputs, overwrite,
-                  replaceable=failed_before(outputs))
+                  replaceable=failed_before(outputs, held))
     if preview and pathlib.Path(preview).suffix.lower() != ".png":
         raise FileFormatError(f"--preview {preview}: the preview is a PNG image, name a .png file")
     if blend and pathlib.Path(blend).suffix.lower() != ".blend":
@@ -301,6 +383,7 @@ def run_adapt(scan_path, landmarks_path, out_dir, levels=None, calibration="auto
         except OSError as exc:
             raise FileFormatError(f"cannot read {exc.filename}: {exc.strerror}") from None
         meshio.write_atomic(outputs["report"], json.dumps(record, indent=1))
+        made = False                      # the folder holds this run's report now
         report = _adapt_and_write(record, verts, tris, points, markers, outputs, levels, calibration, keep_flagged,
                                   t0, log, warn)
     except BaseException as exc:
@@ -313,7 +396,7 @@ def run_adapt(scan_path, landmarks_path, out_dir, levels=None, calibration="auto
         else:
             record.update(status="failed", error=f"{scan_path}: internal error: {type(exc).__name__}: {exc}",
                           traceback=traceback.format_exc())
-        if out_dir.is_dir():
+        if out_dir.is_dir() and not made:
             try:                          # the report first (out of memory, little else may work) ...
                 meshio.write_atomic(outputs["report"], json.dumps(record, indent=1))
                 # ... then what this run wrote before it failed, which is no result
@@ -450,7 +533,7 @@ def _blendout():
     return blendout
 
 
-def _write_preview(path, tpl, result, verts, tris, points, report, log=print):
+def _write_preview(path, tpl, result, verts, tris, points, report, log=_stdout):
     """The preview PNG through blendout (bpy); Blender's failure to render or save names the file."""
     from .core.exceptions import FileFormatError
 
@@ -463,7 +546,7 @@ def _write_preview(path, tpl, result, verts, tris, points, report, log=print):
     log(f"headadapt: preview (scan beside the head with its heat map, front and side) in {path}")
 
 
-def _write_blend(path, tpl, result, verts, tris, points, report, log=print, anatomy=None):
+def _write_blend(path, tpl, result, verts, tris, points, report, log=_stdout, anatomy=None):
     """The .blend through blendout (the only place the batch job imports bpy); Blender's failure to
     save (a full disk, a folder it cannot write) becomes a FileFormatError naming the file."""
     from .core.exceptions import FileFormatError
@@ -488,11 +571,15 @@ def _write_blend(path, tpl, result, verts, tris, points, report, log=print, anat
 # folder mode
 # ---------------------------------------------------------------------------------------------
 def find_pairs(folder):
-    """[(scan path, landmark path or None)] for every scan file in folder, sorted by name."""
+    """[(scan path, landmark path or None)] for every scan file in folder, sorted by name. Hidden files
+    are no scans (macOS's "._NAME.ply" resource forks, editors' and HeadAdapt's own temporaries); a
+    landmark file's suffix may be in any case (NAME.JSON), .json first where both are there."""
     folder = pathlib.Path(folder)
+    files = sorted(p for p in folder.iterdir() if not p.name.startswith(".") and not p.is_dir())
+    landmarks = {p.name.casefold(): p for p in reversed(files) if p.suffix.lower() in (".json", ".pp")}
     out = []
-    for scan in sorted(p for p in folder.iterdir() if p.suffix.lower() in SCAN_SUFFIXES and not p.is_dir()):
-        marks = [scan.with_suffix(s) for s in (".json", ".pp") if scan.with_suffix(s).is_file()]
+    for scan in (p for p in files if p.suffix.lower() in SCAN_SUFFIXES):
+        marks = [landmarks[k] for s in (".json", ".pp") if (k := (scan.stem + s).casefold()) in landmarks]
         out.append((scan, marks[0] if marks else None))
     return out
 
@@ -552,6 +639,7 @@ def run_isolated(job: dict) -> dict:
     return its summary entry. Runs in a thread of the local pool or as a task on a Dask worker; either
     way the scan's log is OUT/NAME/log.txt and its report.json says how it ended."""
     from .core import meshio
+    from .core.exceptions import HeadAdaptError
 
     out_dir = pathlib.Path(job["out_dir"])
     entry = {"scan": job["scan"], "landmarks": job["landmarks"], "out": str(out_dir), "ok": False}
@@ -596,7 +684,12 @@ def run_isolated(job: dict) -> dict:
         status = "failed"
         error = (f"{job['scan']}: its process ended with code {code}"
                  + (f" (signal {-code}: killed, out of memory?)" if code < 0 else "") + " without a result")
-    if status != "done":
+    if status != "done":               # no result beside a report that says so (a killed scan's files)
+        results = [path for what, path in result_paths(out_dir, job["blend"], job["preview"]).items()
+                   if what != "report"]
+        with contextlib.suppress(HeadAdaptError):
+            remove_results(results)
+        remove_temporaries(results + [out_dir / "report.json"])
         meshio.write_atomic(out_dir / "report.json", json.dumps(
             {**report, "status": "failed" if status != "not finished" else status, "run": job["run"],
              "scan": job["scan"], "error": error}, indent=1))
@@ -702,21 +795,34 @@ def _adapt_exit_code(scan, landmarks, out, levels, calibration, keep_flagged, bl
 
 
 def run_folder(folder, out, jobs=0, levels=None, calibration="auto", keep_flagged=False, blend=False, overwrite=False,
-               timeout=900.0, memory_gb=8.0, scheduler=None, log=print, warn=_stderr, preview=False, resume=False):
+               timeout=900.0, memory_gb=8.0, scheduler=None, log=_stdout, warn=_stderr, preview=False, resume=False):
     """Adapt every scan + landmarks pair of a folder, each scan in its own process (local threads start
     them, or the tasks of a Dask cluster at `scheduler`); return the summary, also in OUT/summary.json,
     which is rewritten after every scan and after an interruption (Ctrl-C, SIGTERM: "interrupted" true,
     the scans not done "not finished"). A scan adapted with an outcome that is not ok counts as done
     with warnings ("outcome_ok": false); a failed scan never stops the others. With resume, the scans an
     earlier run finished (kept_result) are kept as they are, named "kept" in the summary, and only the
-    others run (their earlier files replaced)."""
+    others run (their earlier files replaced). A second run into `out` while this one lasts is refused
+    (holding)."""
+    from .core.exceptions import FileFormatError
+
+    folder, out = pathlib.Path(folder), pathlib.Path(out)
+    if scheduler:           # a worker runs in its own folder: the paths it is given mean the same there
+        folder, out = pathlib.Path(os.path.abspath(folder)), pathlib.Path(os.path.abspath(out))
+    if not folder.is_dir():
+        raise FileFormatError(f"{folder}: {'not a folder' if folder.exists() else 'no such folder'}")
+    with holding(out):
+        return _run_folder(folder, out, jobs, levels, calibration, keep_flagged, blend, overwrite, timeout,
+                           memory_gb, scheduler, log, warn, preview, resume)
+
+
+def _run_folder(folder, out, jobs, levels, calibration, keep_flagged, blend, overwrite, timeout, memory_gb,
+                scheduler, log, warn, preview, resume):
+    """run_folder's work, the output folder held."""
     from .core import meshio
     from .core.exceptions import FileFormatError
     from .core.template import TEMPLATE_DIR
 
-    folder, out = pathlib.Path(folder), pathlib.Path(out)
-    if not folder.is_dir():
-        raise FileFormatError(f"{folder}: no such folder")
     pairs = find_pairs(folder)
     if not pairs:
         raise FileFormatError(f"{folder}: no OBJ, PLY or STL scans in this folder")
@@ -739,7 +845,13 @@ def run_folder(folder, out, jobs=0, levels=None, calibration="auto", keep_flagge
                          "log": pathlib.Path(job["out_dir"]) / "log.txt"}.items()})
     check_outputs([p for pair in pairs for p in pair if p], outputs, overwrite or resume,
                   "--resume runs the scans it did not finish, --overwrite redoes them all")
-    remove_results(outputs.values())
+    client = _dask_client(scheduler) if scheduler else None    # unreachable: refused before a file changes
+    # an earlier run's files of the scans to run: those its reports list (a .blend, a preview this run
+    # writes no more), and what a killed run's atomic writes left
+    earlier = [path for job in work for path in earlier_outputs(
+        job["out_dir"], [pathlib.Path(job["scan"])] + ([pathlib.Path(job["landmarks"])] if job["landmarks"] else []))]
+    remove_results([*outputs.values(), *earlier])
+    remove_temporaries([*outputs.values(), *earlier])
     entries = {job["scan"]: kept.get(job["scan"]) or {"scan": job["scan"], "landmarks": job["landmarks"],
                                                       "out": job["out_dir"], "status": "not finished", "ok": False}
                for job in every}
@@ -786,7 +898,7 @@ def run_folder(folder, out, jobs=0, levels=None, calibration="auto", keep_flagge
     previous = _on_sigterm_interrupt()
     try:
         if scheduler:
-            _run_dask(scheduler, work, record)
+            _run_dask(client, work, record)
         else:
             _run_local(work, jobs or min(len(work), os.cpu_count() or 1), record)
     except KeyboardInterrupt:
@@ -846,23 +958,30 @@ def _run_local(work: list[dict], jobs: int, record) -> None:
         _stopping.clear()
 
 
-def _run_dask(scheduler: str, work: list[dict], record) -> None:
-    """The same per-scan jobs (run_isolated) as tasks on a Dask distributed cluster; dask is imported
-    only here. On KeyboardInterrupt the tasks are cancelled (a running scan still ends at its timeout)."""
-    import importlib
-
+def _dask_client(scheduler: str):
+    """A Dask distributed Client of the scheduler at `scheduler`; dask is imported only here (HeadAdaptError:
+    Dask missing, or the scheduler not reached within 20 s)."""
     from .core.exceptions import HeadAdaptError
 
-    # the task by its module's name (run as ``python -m``, this module is __main__, which workers lack)
-    task = importlib.import_module("headadapt_addon.batch").run_isolated
     try:
-        from distributed import Client, as_completed
+        from distributed import Client
     except ImportError:
         raise HeadAdaptError("--scheduler needs Dask: pip install 'dask[distributed]'") from None
     try:
-        client = Client(scheduler, timeout="20s")
+        return Client(scheduler, timeout="20s")
     except (OSError, TimeoutError, ValueError) as exc:
         raise HeadAdaptError(f"cannot reach the Dask scheduler {scheduler}: {exc}") from None
+
+
+def _run_dask(client, work: list[dict], record) -> None:
+    """The same per-scan jobs (run_isolated) as tasks on a Dask distributed cluster (client: _dask_client's).
+    On KeyboardInterrupt the tasks are cancelled (a running scan still ends at its timeout)."""
+    import importlib
+
+    from distributed import as_completed
+
+    # the task by its module's name (run as ``python -m``, this module is __main__, which workers lack)
+    task = importlib.import_module("headadapt_addon.batch").run_isolated
     with client:
         futures = {client.submit(task, job, key=f"headadapt-{job['name']}-{job['run']}", pure=False): job
                    for job in work}

@@ -132,6 +132,8 @@ def _read_ply(path: pathlib.Path) -> tuple[np.ndarray, np.ndarray, bool]:
 def fan_triangles(polys: np.ndarray) -> np.ndarray:
     """(k,3) int64 triangles fanning out each polygon of polys, an (n,m) index array or an object array
     of n index arrays of any lengths (polygons under 3 corners give none)."""
+    if not len(polys):                  # a point cloud (no face element, or one of none)
+        return np.zeros((0, 3), np.int64)
     if polys.dtype != object:
         polys = np.asarray(polys, dtype=np.int64).reshape(len(polys), -1)
         m = polys.shape[1]

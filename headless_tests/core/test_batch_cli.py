@@ -340,3 +340,102 @@ def test_the_demo_writes_beside_the_user_not_into_an_installed_extension(tmp_pat
     monkeypatch.setattr(batch, "ROOT", installed)
     monkeypatch.chdir(tmp_path)
     assert batch.build_parser().parse_args(["demo"]).out == str(tmp_path / "headadapt_demo")
+
+
+def test_a_second_run_into_a_folder_in_use_is_refused_and_a_killed_run_s_report_is_replaced(tmp_path, inputs):
+    """A stranger's pipeline check: a run and a --resume of it into the same --out wrote the same scans
+    at once (reports "failed" beside finished OBJs). While a run holds --out (flock on the folder) a
+    second is refused, naming it; a report left "running" by a run killed (SIGTERM, kill -9) no
+    longer blocks the same command, once nothing holds the folder."""
+    import fcntl
+
+    scan, marks = inputs
+    out = tmp_path / "out"
+    out.mkdir()
+    fd = os.open(out, os.O_RDONLY)
+    fcntl.flock(fd, fcntl.LOCK_EX)                    # another run, still going
+    try:
+        for args in (["adapt", "--scan", scan, "--landmarks", marks, "--out", out],
+                     ["folder", "--folder", scan.parent, "--out", out, "--resume"]):
+            line = one_error_line(batch(*args, "--levels", "0"))
+            assert line == f"headadapt: error: {out}: another HeadAdapt run is writing into this folder now; " \
+                           "wait for it to end, or give another --out"
+        assert list(out.iterdir()) == []
+    finally:
+        os.close(fd)
+    (out / "report.json").write_text(json.dumps({"status": "running", "run": "killed"}))
+    proc = batch("adapt", "--scan", scan, "--landmarks", marks, "--out", out, "--levels", "0")
+    assert proc.returncode in (0, 3), proc.stderr
+    assert json.loads((out / "report.json").read_text())["status"] == "done"
+    fresh = tmp_path / "never"                       # refused input leaves no folder made for the lock
+    assert one_error_line(batch("adapt", "--scan", scan, "--landmarks", tmp_path / "none.json", "--out", fresh))
+    assert not fresh.exists()
+
+
+def test_folder_discovery_skips_hidden_files_and_finds_landmarks_in_any_case(tmp_path):
+    """macOS's "._NAME.ply" forks counted as failed scans; NAME.JSON was not found beside NAME.ply."""
+    from headadapt_addon.batch import find_pairs
+
+    for name in ("a.ply", "a.JSON", "._a.ply", ".b.obj", "c.STL", "c.pp", "c.json", "d.obj"):
+        (tmp_path / name).write_bytes(b"")
+    (tmp_path / "dir.ply").mkdir()
+    assert [(s.name, m.name if m else None) for s, m in find_pairs(tmp_path)] == [
+        ("a.ply", "a.JSON"), ("c.STL", "c.json"), ("d.obj", None)]
+
+
+def test_a_killed_write_s_leftovers_are_removed_and_nothing_else(tmp_path):
+    from headadapt_addon.batch import remove_temporaries
+
+    for name in (".adapted_head.obj.k2j3", ".report.json.x9", ".head.a1b2.blend", "keep.txt", ".keep",
+                 "adapted_head.obj"):
+        (tmp_path / name).write_text("x")
+    (tmp_path / ".preview.q1").mkdir()
+    (tmp_path / ".preview.q1" / "front.png").write_text("x")
+    remove_temporaries([tmp_path / "adapted_head.obj", tmp_path / "report.json", tmp_path / "head.blend",
+                        tmp_path / "preview.png"])
+    assert sorted(p.name for p in tmp_path.iterdir()) == [".keep", "adapted_head.obj", "keep.txt"]
+
+
+def test_a_dask_run_gives_its_workers_absolute_paths_and_an_unreachable_scheduler_writes_nothing(
+        tmp_path, inputs, monkeypatch):
+    """Relative --folder and --out reached a worker running in another folder as its own paths (every
+    scan "no such file", reports written under the worker's folder); an unreachable scheduler left a
+    summary.json that refused the same command next time."""
+    from headadapt_addon import batch as b
+    from headadapt_addon.core.exceptions import HeadAdaptError
+
+    scan, marks = inputs
+    marks.rename(scan.with_suffix(".json"))           # folder mode's pairing: NAME.ply with NAME.json
+    monkeypatch.chdir(tmp_path)
+    given = []
+    monkeypatch.setattr(b, "_dask_client", lambda scheduler: object())
+    monkeypatch.setattr(b, "_run_dask", lambda client, work, record: given.extend(work))
+    b.run_folder("in", "out", scheduler="tcp://nowhere:1", levels=0, log=lambda *_: None)
+    assert given and all(os.path.isabs(job[k]) for job in given for k in ("scan", "landmarks", "out_dir"))
+    assert given[0]["out_dir"] == str(tmp_path / "out" / "scan")
+
+    def unreachable(scheduler):
+        raise HeadAdaptError(f"cannot reach the Dask scheduler {scheduler}")
+
+    monkeypatch.setattr(b, "_dask_client", unreachable)
+    with pytest.raises(HeadAdaptError, match="cannot reach"):
+        b.run_folder("in", "out2", scheduler="tcp://nowhere:1", levels=0, log=lambda *_: None)
+    assert not (tmp_path / "out2").exists()
+
+
+def test_a_reader_gone_or_an_encoding_without_the_name_never_stops_the_log():
+    """A monitor's `| grep -m1 FAIL` ended a folder run with BrokenPipeError (exit 1, the summary out of
+    step); a latin-1 stdout failed a scan named 张伟.ply and then the run."""
+    code = ("import io, sys\n"
+            "from headadapt_addon.batch import _say\n"
+            "class Gone(io.StringIO):\n"
+            "    def write(self, s): raise BrokenPipeError\n"
+            "    def fileno(self): return sys.stdout.fileno()\n"
+            "_say('one', Gone())\n"
+            "latin = io.TextIOWrapper(io.BytesIO(), encoding='latin-1')\n"
+            "_say('scan 张伟.ply done', latin)\n"
+            "latin.seek(0)\n"
+            "print('ok', repr(latin.buffer.getvalue().decode('latin-1')), file=sys.stderr)\n")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, timeout=60)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout == "" and "ok 'scan \\\\u5f20\\\\u4f1f.ply done\\n'" in proc.stderr

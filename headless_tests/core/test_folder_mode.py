@@ -162,6 +162,15 @@ def test_blend_and_preview_are_flags_writing_one_of_each_per_scan(tmp_path):
             "blend"} <= set(stages)
     report = json.loads((tmp_path / "out" / "a" / "report.json").read_text())
     assert all(s > 0 for s in stages.values()) and sum(stages.values()) <= report["total_seconds"]   # each once
+    # --overwrite without them removes the earlier .blend and preview (they stayed, beside a report that
+    # no longer listed them); a log reader gone at once (a monitor's `| head`) does not stop the run
+    again = subprocess.Popen(batch_cmd("folder", "--folder", src, "--out", tmp_path / "out", "--levels", "0",
+                                       "--overwrite"), stdout=subprocess.PIPE, stderr=subprocess.PIPE, cwd=ROOT)
+    again.stdout.close()
+    err = again.stderr.read().decode()
+    assert again.wait(timeout=300) in (0, 3) and "Traceback" not in err, err
+    assert sorted(p.name for p in (tmp_path / "out" / "a").iterdir()) == ["adapted_head.obj", "log.txt", "report.json"]
+    assert json.loads((tmp_path / "out" / "summary.json").read_text())["done"] == 1
 
 
 def test_the_blend_writer_is_imported_only_to_write_a_blend(tmp_path):

@@ -110,6 +110,12 @@ def test_bad_scan_files_name_the_file_and_problem(tmp_path):
     (tmp_path / "pts.obj").write_text("v 0 0 0\nv 1 0 0\n")
     with pytest.raises(FileFormatError, match="pts.obj.*no faces"):
         meshio.read_mesh(tmp_path / "pts.obj")
+    # a scanner's point-cloud PLY, with no face element or one of none: "cannot reshape array" before
+    head = b"ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\n"
+    for name, faces in (("cloud.ply", b""), ("cloud0.ply", b"element face 0\nproperty list uchar int vertex_indices\n")):
+        (tmp_path / name).write_bytes(head + faces + b"end_header\n0 0 0\n1 0 0\n0 1 0\n")
+        with pytest.raises(FileFormatError, match=f"{name}: the file has no faces \\(a point cloud is not a scan"):
+            meshio.read_mesh(tmp_path / name)
     (tmp_path / "bad.ply").write_bytes(b"not a ply at all")
     with pytest.raises(FileFormatError, match="bad.ply"):
         meshio.read_mesh(tmp_path / "bad.ply")

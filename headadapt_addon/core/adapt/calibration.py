@@ -7,6 +7,7 @@ common FDPs (Umeyama 1991). "auto" keeps the one with the lower RMS residual ove
 
 from __future__ import annotations
 
+import collections
 import dataclasses
 
 import numpy as np
@@ -151,8 +152,9 @@ def check_handedness(scan_fdps, template_fdps):
     are the mirror image of the template's FDPs (so is a mirrored scan with its own labels; the
     caller can tell them apart by the scan's winding). All left/right pairs at once are tried first;
     then, one at a time and the best first, any two labels (a left/right pair goes to "swapped", two
-    other FDPs, such as one eye's outer corner and the other's inner, to "relabelled"): a swap is
-    made only if it at least halves the least-squares calibration residual. Needs at least 4 FDPs
+    other FDPs, such as one eye's outer corner and the other's inner, to "relabelled") or a group's
+    left/right pairs together (both eyes' corners): a swap is made only if it at least halves the
+    least-squares calibration residual. Needs at least 4 FDPs
     besides the pair; returns the input unchanged when nothing helps."""
     common = [k for k in scan_fdps if k in template_fdps]
     pairs = sorted({tuple(sorted((k, mpeg4.FDPS[k].mirror))) for k in common
@@ -180,16 +182,23 @@ def check_handedness(scan_fdps, template_fdps):
         per = _residuals(sim, {k: fixed[k] for k in common}, template_fdps)[1]
         typical = float(np.median(list(per.values())))
         suspects = sorted(k for k in common if per[k] > SUSPECT * typical and k not in done)
-        candidates = [p for p in pairs if not done & set(p)] + [
-            (a, b) for i, a in enumerate(suspects) for b in suspects[i + 1:] if (a, b) not in pairs]
-        trials = [_rms(swap(fixed, [pair]), template_fdps, common) for pair in candidates]
+        # ... and a group's left/right pairs at once (both eyes' corners labelled from the viewer's
+        # side, the lips right: either eye pair alone does not halve the residual)
+        free = [p for p in pairs if not done & set(p)]
+        groups = collections.defaultdict(list)
+        for p in free:
+            groups[p[0].split(".")[0]].append(p)
+        candidates = [[p] for p in free] + [g for g in groups.values() if len(g) > 1] + [
+            [(a, b)] for i, a in enumerate(suspects) for b in suspects[i + 1:] if (a, b) not in pairs]
+        trials = [_rms(swap(fixed, which), template_fdps, common) for which in candidates]
         if not trials or not min(trials) < SWAP_GAIN * rms:
             break
-        pair = candidates[int(np.argmin(trials))]
-        fixed, rms = swap(fixed, [pair]), min(trials)
-        key = "swapped" if pair in pairs else "relabelled"
-        found[key] = found[key] + [list(pair)]
-        done |= set(pair)
+        which = candidates[int(np.argmin(trials))]
+        fixed, rms = swap(fixed, which), min(trials)
+        for pair in which:
+            key = "swapped" if pair in pairs else "relabelled"
+            found[key] = found[key] + [list(pair)]
+            done |= set(pair)
     return fixed, found
 
 

@@ -30,6 +30,8 @@ def start_spatial(verts, tris, options):
 def _spatial_side(verts, tris, backend, dense_spacing):
     """(the MeshQuery, the median edge, coarse, the vertices' kd-tree or None)."""
     query = spatial.MeshQuery(verts, tris, backend=backend)
+    if backend == "embree":
+        query.rays.build()                  # Embree's tree of the scan, built here on the worker too
     # the median of the triangles' first edges; the numpy tree has their lengths (the same numbers)
     tree = getattr(query, "tree", None)
     median_edge = tree.median_edge() if tree is not None else \

@@ -36,6 +36,11 @@ class EmbreeRays:
         self._scene = []                    # made at the first ray: a query used for closest points only
         #                                     (the deformed skin's, each level) never builds it
 
+    def build(self):
+        """Build the scene now (a scan's, on the worker thread that prepares it); returns self."""
+        _ = self.scene
+        return self
+
     @property
     def scene(self):
         """The Embree scene of the mesh (None without triangles), built once."""
@@ -49,6 +54,9 @@ class EmbreeRays:
                 # coordinates about the mesh's corner, so float32 keeps ~1e-7 of its size wherever it lies
                 scene = rtcore_scene.EmbreeScene(robust=True)
                 TriangleMesh(scene, (self.verts - self.origin).astype(np.float32), self.tris.astype(np.int32))
+                # Embree builds its tree at the scene's first ray: one now, so a scan's tree is built
+                # where the scan is prepared (a worker thread, beside the normals), not in level 0
+                scene.run(np.zeros((1, 3), np.float32), np.ones((1, 3), np.float32), output=1)
             self._scene.append(scene)
         return self._scene[0]
 
