@@ -584,6 +584,28 @@ def find_pairs(folder):
     return out
 
 
+def folder_notes(folder, out, pairs, names) -> list[str]:
+    """What folder mode leaves alone but a pipeline should hear of: landmark files with no scan of their
+    name beside them (a scan renamed, or exported as another format), and result folders in `out` that
+    are none of this run's (a scan gone, or now named NAME_obj/NAME_ply beside a new twin)."""
+    notes = []
+    stems = {s.stem.casefold() for s, _ in pairs}
+    alone = sorted(p.name for p in pathlib.Path(folder).iterdir() if not p.name.startswith(".")
+                   and p.suffix.lower() in (".json", ".pp") and p.stem.casefold() not in stems and not p.is_dir())
+    if alone:
+        notes.append(f"{len(alone)} landmark file{'s' if len(alone) != 1 else ''} with no scan of that name "
+                     f"beside {'them' if len(alone) != 1 else 'it'} in {folder}, not used: {', '.join(alone[:10])}"
+                     + (" ..." if len(alone) > 10 else ""))
+    ours = {n.casefold() for n in names}
+    other = sorted(d.name for d in pathlib.Path(out).iterdir() if d.is_dir() and d.name.casefold() not in ours
+                   and (d / "report.json").is_file()) if pathlib.Path(out).is_dir() else []
+    if other:
+        notes.append(f"{len(other)} result folder{'s' if len(other) != 1 else ''} in {out} of no scan of this "
+                     f"run, left as {'they are' if len(other) != 1 else 'it is'}: {', '.join(other[:10])}"
+                     + (" ..." if len(other) > 10 else ""))
+    return notes
+
+
 def output_names(scans: list[pathlib.Path]) -> list[str]:
     """One output folder name per scan, distinct even where file systems ignore case: the stem, or
     STEM_EXT where scans share a stem (head.obj and head.ply: head_obj, head_ply), numbered if still taken."""
@@ -895,6 +917,8 @@ def _run_folder(folder, out, jobs, levels, calibration, keep_flagged, blend, ove
             f"{len(work)} to adapt into {out} {how}")
     else:
         log(f"headadapt: {len(work)} scans from {folder} into {out} {how}")
+    for line in folder_notes(folder, out, pairs, names):
+        warn(f"headadapt: warning: {line}")
     previous = _on_sigterm_interrupt()
     try:
         if scheduler:

@@ -133,8 +133,10 @@ def _xyz(path, what, value):
     return arr
 
 
-def _refuse_constant(name):
-    raise ValueError(f"{name} is not a number")
+def _constant(name):
+    """NaN, Infinity and -Infinity as JSON's extension spells them: read as floats, so the check of the
+    point they are in (_xyz) names its FDP."""
+    return float(name)
 
 
 class _Twice(Exception):
@@ -159,12 +161,12 @@ def _given_twice(path, name):
 
 def _parse_json(path, text):
     try:
-        data = json.loads(text, parse_constant=_refuse_constant, object_pairs_hook=_unique_keys)
+        data = json.loads(text, parse_constant=_constant, object_pairs_hook=_unique_keys)
     except _Twice as exc:
         raise _given_twice(path, exc.args[0]) from None
     except RecursionError:
         raise FileFormatError(f"{path}: cannot read landmarks (JSON nested too deep)") from None
-    except ValueError as exc:        # JSONDecodeError, NaN/Infinity, integers too long to convert
+    except ValueError as exc:        # JSONDecodeError, integers too long to convert
         raise FileFormatError(f"{path}: cannot read landmarks ({exc})") from None
     if not isinstance(data, dict) or not isinstance(data.get("points"), dict):
         raise FileFormatError(f'{path}: expected a JSON object {{"points": {{"3.7": [x, y, z], ...}}}}')

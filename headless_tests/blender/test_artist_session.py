@@ -98,7 +98,7 @@ def test_landmark_file_with_nan_is_refused_by_the_operator(ui_scene, tmp_path):
         landmarks.set_landmarks(scan, {"3.7": [1.0, 2.0, 3.0]})
         path = tmp_path / "nan.json"
         path.write_text('{"points": {"3.7": [NaN, 0, 0], "3.12": [1, 2, 3], "9.3": [0, 1, 0], "2.10": [0, 0, 1]}}')
-        with pytest.raises(RuntimeError, match=r"nan.json: cannot read landmarks \(NaN is not a number\)"):
+        with pytest.raises(RuntimeError, match=r"nan.json: FDP 3.7 must be three finite numbers \[x, y, z\], got \[nan"):
             bpy.ops.headadapt.import_landmarks(filepath=str(path))
         assert list(landmarks.get_landmarks(scan)) == ["3.7"]          # unchanged
 

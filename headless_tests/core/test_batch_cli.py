@@ -439,3 +439,25 @@ def test_a_reader_gone_or_an_encoding_without_the_name_never_stops_the_log():
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, timeout=60)
     assert proc.returncode == 0, proc.stderr
     assert proc.stdout == "" and "ok 'scan \\\\u5f20\\\\u4f1f.ply done\\n'" in proc.stderr
+
+
+def test_folder_mode_names_landmark_files_without_a_scan_and_results_of_no_scan_of_the_run(tmp_path):
+    """A landmark file whose scan was renamed went unused without a word, and the result folder of a
+    scan gone (or renamed NAME_ply when a twin NAME.obj arrived) stayed beside the run's, unnamed."""
+    from headadapt_addon.batch import find_pairs, folder_notes, output_names
+
+    src, out = tmp_path / "scans", tmp_path / "out"
+    src.mkdir()
+    for name in ("actor.ply", "actor.obj", "actor.json", "gone.json", "old.pp", "._x.json"):
+        (src / name).write_bytes(b"")
+    for folder in ("actor", "actor_ply", "misc"):
+        (out / folder).mkdir(parents=True)
+    (out / "actor" / "report.json").write_text("{}")
+    (out / "actor_ply" / "report.json").write_text("{}")
+    pairs = find_pairs(src)
+    names = output_names([s for s, _ in pairs])
+    assert names == ["actor_obj", "actor_ply"]
+    assert folder_notes(src, out, pairs, names) == [
+        f"2 landmark files with no scan of that name beside them in {src}, not used: gone.json, old.pp",
+        f"1 result folder in {out} of no scan of this run, left as it is: actor"]
+    assert len(folder_notes(src, tmp_path / "new", pairs, names)) == 1      # no --out yet: no results to name

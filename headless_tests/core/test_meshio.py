@@ -232,7 +232,8 @@ BOMB = ('<?xml version="1.0"?>\n<!DOCTYPE PickedPoints [\n <!ENTITY a "aaaaaaaaa
 
 
 @pytest.mark.parametrize("name, content, where", [
-    ("nan.json", b'{"points": {"3.7": [NaN, 0, 0]}}', "NaN is not a number"),
+    ("nan.json", b'{"points": {"3.12": [0, 1, 0], "3.7": [NaN, 0, 0]}}', "FDP 3.7 must be three finite numbers [x, y, z], got [nan, 0, 0]"),
+    ("minf.json", b'{"points": {"3.7": [0, -Infinity, 0]}}', "FDP 3.7 must be three finite numbers [x, y, z], got [0, -inf, 0]"),
     ("inf.json", b'{"points": {"3.7": [1e999, 0, 0]}}', "FDP 3.7 must be three finite numbers"),
     ("bigint.json", b'{"points": {"3.7": [1' + b"0" * 400 + b', 0, 0]}}', "FDP 3.7 must be three finite"),
     ("longint.json", b'{"points": {"3.7": [1' + b"0" * 5000 + b', 0, 0]}}', "cannot read landmarks"),
