@@ -249,8 +249,11 @@ def holding(out_dir: os.PathLike | str):
     nothing is left to clean; a folder made here for it and left empty is removed."""
     from .core.exceptions import FileFormatError
 
-    out = pathlib.Path(out_dir)
-    made = not out.exists()
+    out = pathlib.Path(os.path.abspath(out_dir))
+    made = out                            # the first folder of the path this run makes, if any
+    while not made.parent.exists() and made.parent != made:
+        made = made.parent
+    made = None if out.exists() else made
     try:
         import fcntl
         out.mkdir(parents=True, exist_ok=True)
@@ -270,9 +273,15 @@ def holding(out_dir: os.PathLike | str):
         yield held
     finally:
         os.close(fd)
-        if made:
-            with contextlib.suppress(OSError):
-                out.rmdir()               # only if this run left it empty (bad input)
+        folder = out
+        while made is not None:           # the folders made here, if this run left them empty (bad input)
+            try:
+                folder.rmdir()
+            except OSError:
+                break
+            if folder == made:
+                break
+            folder = folder.parent
 
 
 def failed_before(outputs: dict[str, pathlib.Path], held: bool = False) -> set:
@@ -576,10 +585,15 @@ def find_pairs(folder):
     landmark file's suffix may be in any case (NAME.JSON), .json first where both are there."""
     folder = pathlib.Path(folder)
     files = sorted(p for p in folder.iterdir() if not p.name.startswith(".") and not p.is_dir())
-    landmarks = {p.name.casefold(): p for p in reversed(files) if p.suffix.lower() in (".json", ".pp")}
+    # landmark files are regular files (a named pipe would hang its scan's process until the timeout)
+    landmarks = [p for p in files if p.suffix.lower() in (".json", ".pp") and p.is_file()]
+    exact = {p.name: p for p in landmarks}
+    folded = {p.name.casefold(): p for p in reversed(landmarks)}
     out = []
     for scan in (p for p in files if p.suffix.lower() in SCAN_SUFFIXES):
-        marks = [landmarks[k] for s in (".json", ".pp") if (k := (scan.stem + s).casefold()) in landmarks]
+        # the name as spelt first (Kim.ply: Kim.json, kim.ply: kim.json), then in any case (NAME.JSON)
+        marks = ([exact[k] for s in (".json", ".pp") if (k := scan.stem + s) in exact]
+                 + [folded[k] for s in (".json", ".pp") if (k := (scan.stem + s).casefold()) in folded])
         out.append((scan, marks[0] if marks else None))
     return out
 
@@ -590,8 +604,10 @@ def folder_notes(folder, out, pairs, names) -> list[str]:
     are none of this run's (a scan gone, or now named NAME_obj/NAME_ply beside a new twin)."""
     notes = []
     stems = {s.stem.casefold() for s, _ in pairs}
+    own = {pathlib.Path(out) / "summary.json"}              # --out may be the folder itself
     alone = sorted(p.name for p in pathlib.Path(folder).iterdir() if not p.name.startswith(".")
-                   and p.suffix.lower() in (".json", ".pp") and p.stem.casefold() not in stems and not p.is_dir())
+                   and p.suffix.lower() in (".json", ".pp") and p.stem.casefold() not in stems and not p.is_dir()
+                   and not any(same_file(p, o) for o in own))
     if alone:
         notes.append(f"{len(alone)} landmark file{'s' if len(alone) != 1 else ''} with no scan of that name "
                      f"beside {'them' if len(alone) != 1 else 'it'} in {folder}, not used: {', '.join(alone[:10])}"

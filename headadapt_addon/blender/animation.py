@@ -183,7 +183,9 @@ def clear_animation(root, names):
         fcurves = _fcurves(root) if root.animation_data and root.animation_data.action else None
         for fc in [f for f in (fcurves or ()) if f.data_path in ("location", *ROTATIONS)]:
             fcurves.remove(fc)
-        root.matrix_basis = mathutils.Matrix(np.reshape(root[HEAD_REST], (4, 4)).tolist())
+        rest = np.reshape(root[HEAD_REST], (4, 4))       # its turn and place; its scale as it is now
+        rest[:3, :3] = rest[:3, :3] / np.linalg.norm(rest[:3, :3], axis=0) * np.array(root.scale)
+        root.matrix_basis = mathutils.Matrix(rest.tolist())
 
 
 def _keyed_name(data_path):
@@ -210,8 +212,8 @@ def head_rotation(root, anim, frames):
     if HEAD_REST not in root:
         root[HEAD_REST] = [float(v) for row in root.matrix_basis for v in row]
     rest = np.reshape(root[HEAD_REST], (4, 4))
-    scale = np.linalg.norm(rest[:3, :3], axis=0)
-    rest_turn = Rotation.from_matrix(rest[:3, :3] / scale)
+    rest_turn = Rotation.from_matrix(rest[:3, :3] / np.linalg.norm(rest[:3, :3], axis=0))
+    scale = np.array(root.scale)            # the artist's now (a root scaled for export since the rest)
     keyed = np.zeros(len(frames), bool)
     turn = np.zeros((len(frames), 3))
     for axis, col in cols.items():
@@ -269,10 +271,10 @@ def import_fap(root, anim, start=1):
     asked beyond its slider range gets its range widened, up to Blender's -10..10; beyond that it is
     cut there and named in "clipped". Everything is checked before anything changes: HeadAdaptError
     for a file with no frames, longer than Blender's timeline or at a frame rate its scene cannot
-    hold. An inner lip FAP and its outer one given at the same frames play half each (one lip's motion).
-    Returns {what: count the file asks for and the head plays (faps, expressions, visemes, head turns),
-    "lip_pairs_halved": how many such pairs, "clipped": {key: the largest value asked}, "unbaked": [the
-    keys the file asks for that are not baked on the head]}.
+    hold. Of an inner lip FAP and its outer one given at the same frame, the stronger plays (one lip's
+    motion). Returns {what: count the file asks for and the head plays (faps, expressions, visemes, head
+    turns), "lip_pairs_merged": how many such pairs, "clipped": {key: the largest value asked},
+    "unbaked": [the keys the file asks for that are not baked on the head]}.
     """
     full = float(mpeg4.INTENSITY_MAX)
     objs = scene.template_objects(root)
@@ -290,7 +292,7 @@ def import_fap(root, anim, start=1):
         raise HeadAdaptError(f"a frame rate of {anim.fps:g} fps is beyond what a Blender scene can play")
     frames = (anim.frames - anim.frames[0]).astype(np.float64) + start
     curves = {}                                            # key name -> (frames, values)
-    counts = {"faps": 0, "expressions": 0, "visemes": 0, "head": 0, "lip_pairs_halved": 0}
+    counts = {"faps": 0, "expressions": 0, "visemes": 0, "head": 0, "lip_pairs_merged": 0}
     unbaked = []                                           # keys the file asks for that the head lacks
     for number, fap in mpeg4.FAPS.items():
         col = anim.values[:, number]
@@ -300,12 +302,16 @@ def import_fap(root, anim, start=1):
         if fap.name in info and info[fap.name].get("fap_units"):
             value = col / info[fap.name]["fap_units"]
             # an inner lip FAP (4-13) and its outer one (51-60) drive the same muscles, so their keys
-            # are one lip's motion: where a file gives both, each plays half (their mean), not twice
+            # are one lip's motion: where a file gives both, the stronger plays (the inner at a tie)
+            # and the other rests, so the lip moves once, not twice (nor by half where one is 0)
             pair = mpeg4.FAP_BY_NAME.get(fap.name[:-2] if fap.name.endswith("_o") else f"{fap.name}_o")
-            if pair is not None and pair.name in info:
-                both = given & ~np.isnan(anim.values[:, pair.number])
-                value = np.where(both, 0.5 * value, value)
-                counts["lip_pairs_halved"] += bool(both.any()) and fap.name.endswith("_o")
+            if pair is not None and pair.name in info and info[pair.name].get("fap_units"):
+                other = anim.values[:, pair.number] / info[pair.name]["fap_units"]
+                both = given & ~np.isnan(other)
+                outer = fap.name.endswith("_o")
+                rests = np.abs(value) < np.abs(other) if not outer else np.abs(value) <= np.abs(other)
+                value = np.where(both & rests, 0.0, value)
+                counts["lip_pairs_merged"] += bool(both.any()) and outer
             curves[fap.name] = (frames[given], value[given])
             counts["faps"] += 1
         elif fap.name not in info:

@@ -666,12 +666,12 @@ class HEADADAPT_OT_import_fap(_Base, ImportHelper, bpy.types.Operator):
             counts = animation.import_fap(root, anim)
         except HeadAdaptError as exc:
             return self.fail(f"{self.filepath}: {exc}")
-        clipped, unbaked, halved = counts.pop("clipped"), counts.pop("unbaked"), counts.pop("lip_pairs_halved")
+        clipped, unbaked, merged = counts.pop("clipped"), counts.pop("unbaked"), counts.pop("lip_pairs_merged")
         self.report({"INFO"}, f"{name}: {len(anim.frames)} frames at {anim.fps:g} fps; "
                               + ", ".join(f"{v} {k}" for k, v in counts.items()))
-        if halved:
-            self.report({"INFO"}, f"{name}: {halved} inner and outer lip FAP pair{'s' if halved != 1 else ''} "
-                                  "given together, each played at half: their keys are one lip's motion")
+        if merged:
+            self.report({"INFO"}, f"{name}: {merged} inner and outer lip FAP pair{'s' if merged != 1 else ''} "
+                                  "given together: the stronger of each plays, as their keys are one lip's motion")
         if unbaked:
             self.report({"WARNING"}, f"{name}: {len(unbaked)} key{'s' if len(unbaked) != 1 else ''} the file asks for "
                                      f"{'are' if len(unbaked) != 1 else 'is'} not baked on {root.name!r}, so not "

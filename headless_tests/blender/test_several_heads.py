@@ -160,20 +160,25 @@ def test_inner_and_outer_lip_faps_given_together_play_one_lip_motion(ui_scene, t
         inner, outer = mpeg4.FAP_BY_NAME["lower_t_midlip"], mpeg4.FAP_BY_NAME["lower_t_midlip_o"]
         units = {k: v["fap_units"] for k, v in json.loads(bpy.data.objects["A skin"]["headadapt_keys"]).items()}
         played = {}
-        for name, which in (("inner", [inner]), ("both", [inner, outer])):
+        # (inner, outer) at the second frame; a tracker writing its whole mask gives the other as 0
+        for name, given in (("inner", (100, None)), ("both", (100, 100)), ("outer 0", (100, 0)),
+                            ("outer stronger", (40, -120))):
             vals = np.full((2, mpeg4.N_FAPS + 1), np.nan)
-            for fap in which:
-                vals[:, fap.number] = [0, 100]
-            write_fap(tmp_path / f"{name}.fap", FapAnimation(name, 25.0, np.arange(2), vals, np.full((2, 4), np.nan),
-                                                             np.full((2, 6), np.nan)))
+            for fap, value in zip((inner, outer), given):
+                if value is not None:
+                    vals[:, fap.number] = [0, value]
+            write_fap(tmp_path / "lip.fap", FapAnimation(name, 25.0, np.arange(2), vals, np.full((2, 4), np.nan),
+                                                         np.full((2, 6), np.nan)))
             capfd.readouterr()
-            assert bpy.ops.headadapt.import_fap(filepath=str(tmp_path / f"{name}.fap")) == {"FINISHED"}
+            assert bpy.ops.headadapt.import_fap(filepath=str(tmp_path / "lip.fap")) == {"FINISHED"}
             said = capfd.readouterr().out
-            assert ("1 inner and outer lip FAP pair given together, each played at half" in said) == (name == "both")
+            assert ("1 inner and outer lip FAP pair given together: the stronger of each plays" in said) == (
+                name != "inner")
             bpy.context.scene.frame_set(2)
             played[name] = (keys[inner.name].value, keys[outer.name].value)
-        assert played["inner"] == pytest.approx((100 / units[inner.name], 0.0), rel=1e-6)
-        assert played["both"] == pytest.approx((50 / units[inner.name], 50 / units[outer.name]), rel=1e-6)
+        single = (100 / units[inner.name], 0.0)
+        assert played["inner"] == played["both"] == played["outer 0"] == pytest.approx(single, rel=1e-6)
+        assert played["outer stronger"] == pytest.approx((0.0, -120 / units[outer.name]), rel=1e-6)
         assert root.name == "A adapted"
 
 
@@ -276,3 +281,36 @@ def test_the_preview_exports_to_gltf_as_one_clip_named_by_its_meshes(ui_scene, t
             clips[mode] = json.loads(data[20:20 + struct.unpack("<I", data[12:16])[0]]).get("animations", [])
         assert len(clips["ACTIONS"]) == 4 and len(clips["ACTIVE_ACTIONS"]) == 1
         assert len(clips["ACTIVE_ACTIONS"][0]["channels"]) == 4
+
+
+def test_a_fap_imported_again_after_the_root_is_scaled_for_export_keeps_that_scale_and_its_pivot(ui_scene, tmp_path):
+    # the README's glTF step scales the root by 1/1000; a .fap imported again then reset the root to its
+    # old scale (1002), and the head turn's location keys, made at the old scale, moved the pivot 1.3 m
+    import bpy
+
+    from headadapt_addon.blender import animation
+    from headadapt_addon.core import mpeg4
+    from headadapt_addon.core.fapfile import FapAnimation, write_fap
+
+    vals = np.full((2, mpeg4.N_FAPS + 1), np.nan)
+    vals[:, mpeg4.FAP_BY_NAME["head_yaw"].number] = [0, 20000]
+    expr = np.full((2, 6), np.nan)
+    expr[:, :2] = [[6, 0], [6, 63]]
+    write_fap(tmp_path / "yaw.fap", FapAnimation("yaw", 25.0, np.arange(2), vals, np.full((2, 4), np.nan), expr))
+    with bpy.context.temp_override(**ui_scene):
+        _scan("A")
+        assert bpy.ops.headadapt.adapt(levels=0) == {"FINISHED"}
+        assert bpy.ops.headadapt.bake_expressions(sets={"expression"}, preview=False) == {"FINISHED"}
+        root = bpy.context.scene.objects["A adapted"]
+        assert bpy.ops.headadapt.import_fap(filepath=str(tmp_path / "yaw.fap")) == {"FINISHED"}
+        bpy.context.scene.frame_set(1)
+        small = np.array(root.scale) / 1000.0
+        root.scale = small
+        assert bpy.ops.headadapt.import_fap(filepath=str(tmp_path / "yaw.fap")) == {"FINISHED"}
+        pivots = []
+        for frame in (1, 2):
+            bpy.context.scene.frame_set(frame)
+            assert np.allclose(root.scale, small, rtol=1e-6)
+            pivots.append(np.array(root.matrix_world) @ np.r_[animation.head_pivot(root), 1.0])
+        np.testing.assert_allclose(pivots[1], pivots[0], atol=1e-6)        # the turn keeps its pivot
+        assert np.abs(np.array(root.matrix_world)[:3, :3] / small[0] - np.eye(3)).max() > 0.1

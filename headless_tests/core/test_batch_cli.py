@@ -368,7 +368,8 @@ def test_a_second_run_into_a_folder_in_use_is_refused_and_a_killed_run_s_report_
     assert proc.returncode in (0, 3), proc.stderr
     assert json.loads((out / "report.json").read_text())["status"] == "done"
     fresh = tmp_path / "never"                       # refused input leaves no folder made for the lock
-    assert one_error_line(batch("adapt", "--scan", scan, "--landmarks", tmp_path / "none.json", "--out", fresh))
+    assert one_error_line(batch("adapt", "--scan", scan, "--landmarks", tmp_path / "none.json", "--out",
+                                fresh / "a" / "b"))
     assert not fresh.exists()
 
 
@@ -376,11 +377,14 @@ def test_folder_discovery_skips_hidden_files_and_finds_landmarks_in_any_case(tmp
     """macOS's "._NAME.ply" forks counted as failed scans; NAME.JSON was not found beside NAME.ply."""
     from headadapt_addon.batch import find_pairs
 
-    for name in ("a.ply", "a.JSON", "._a.ply", ".b.obj", "c.STL", "c.pp", "c.json", "d.obj"):
+    for name in ("a.ply", "a.JSON", "._a.ply", ".b.obj", "c.STL", "c.pp", "c.json", "d.obj", "Kim.ply", "Kim.json",
+                 "kim.ply", "kim.json", "e.ply"):
         (tmp_path / name).write_bytes(b"")
     (tmp_path / "dir.ply").mkdir()
+    os.mkfifo(tmp_path / "e.json")          # a named pipe is no landmark file (its scan would hang on it)
     assert [(s.name, m.name if m else None) for s, m in find_pairs(tmp_path)] == [
-        ("a.ply", "a.JSON"), ("c.STL", "c.json"), ("d.obj", None)]
+        ("Kim.ply", "Kim.json"), ("a.ply", "a.JSON"), ("c.STL", "c.json"), ("d.obj", None), ("e.ply", None),
+        ("kim.ply", "kim.json")]
 
 
 def test_a_killed_write_s_leftovers_are_removed_and_nothing_else(tmp_path):
@@ -461,3 +465,6 @@ def test_folder_mode_names_landmark_files_without_a_scan_and_results_of_no_scan_
         f"2 landmark files with no scan of that name beside them in {src}, not used: gone.json, old.pp",
         f"1 result folder in {out} of no scan of this run, left as it is: actor"]
     assert len(folder_notes(src, tmp_path / "new", pairs, names)) == 1      # no --out yet: no results to name
+    (src / "summary.json").write_text("{}")                                 # --out is the folder: its own
+    (src / "gone.json").unlink()                                             # summary is no landmark file
+    assert folder_notes(src, src, pairs, names)[0].endswith("not used: old.pp")
