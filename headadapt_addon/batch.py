@@ -244,8 +244,8 @@ def check_writable(outputs: dict[str, pathlib.Path]) -> None:
 def holding(out_dir: os.PathLike | str):
     """Hold the output folder for this run (an exclusive flock on the folder itself): a second HeadAdapt
     run into it while this one lasts is refused (FileFormatError: exit 2), as two runs writing the same
-    files would leave reports that contradict their results. Yields whether the folder is held (False
-    where flock is missing or cannot lock a folder: Windows, NFS). The lock ends with the process, however it ends (kill -9 too), so
+    files would leave reports that contradict their results. Yields (whether the folder is held: False
+    where flock is missing or cannot lock a folder, Windows, NFS; whether this run made it). The lock ends with the process, however it ends (kill -9 too), so
     nothing is left to clean; a folder made here for it and left empty is removed."""
     from .core.exceptions import FileFormatError
 
@@ -259,7 +259,7 @@ def holding(out_dir: os.PathLike | str):
         out.mkdir(parents=True, exist_ok=True)
         fd = os.open(out, os.O_RDONLY)
     except (ImportError, OSError):          # no flock here, or a folder that cannot be made (checked later)
-        yield False
+        yield False, False
         return
     try:
         try:
@@ -270,7 +270,7 @@ def holding(out_dir: os.PathLike | str):
                                   "to end, or give another --out") from None
         except OSError:                   # a file system that cannot lock a folder (NFS emulates flock with
             held = False                  # a write lock, refused on a folder): the run goes on unguarded
-        yield held
+        yield held, made is not None
     finally:
         os.close(fd)
         folder = out
@@ -350,8 +350,7 @@ def run_adapt(scan_path, landmarks_path, out_dir, levels=None, calibration="auto
     was interrupted or was killed; with overwrite the earlier results are deleted first. Any failure
     after that leaves report.json with "status": "failed" and the error (and no result beside it),
     then raises."""
-    made = not pathlib.Path(out_dir).exists()
-    with holding(out_dir) as held:
+    with holding(out_dir) as (held, made):
         return _run_adapt(scan_path, landmarks_path, out_dir, levels, calibration, keep_flagged, blend, overwrite,
                           run_id, log, warn, preview, held, made)
 

@@ -133,12 +133,6 @@ def _xyz(path, what, value):
     return arr
 
 
-def _constant(name):
-    """NaN, Infinity and -Infinity as JSON's extension spells them: read as floats, so the check of the
-    point they are in (_xyz) names its FDP."""
-    return float(name)
-
-
 class _Twice(Exception):
     """A name given twice in one JSON object (json.loads would keep the last silently)."""
 
@@ -161,7 +155,9 @@ def _given_twice(path, name):
 
 def _parse_json(path, text):
     try:
-        data = json.loads(text, parse_constant=_constant, object_pairs_hook=_unique_keys)
+        # NaN and Infinity (JSON's extension) read as floats: the check of the point they are in (_xyz)
+        # then names its FDP
+        data = json.loads(text, parse_constant=float, object_pairs_hook=_unique_keys)
     except _Twice as exc:
         raise _given_twice(path, exc.args[0]) from None
     except RecursionError:

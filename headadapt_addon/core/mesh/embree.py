@@ -12,6 +12,8 @@ asked of the numpy tree instead. Closest points are the numpy tree's (embreex ha
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 
 from .triangles import ray_choice
@@ -33,32 +35,29 @@ class EmbreeRays:
         from embreex import rtcore_scene  # noqa: F401  (refused here, not at the first ray, if missing)
 
         self.verts, self.tris, self.tree = verts, tris, tree     # tree: the numpy TriangleBVH (fallback)
-        self._scene = []                    # made at the first ray: a query used for closest points only
-        #                                     (the deformed skin's, each level) never builds it
+        # coordinates about the mesh's corner, so float32 keeps ~1e-7 of its size wherever it lies
+        self.origin = verts.min(axis=0) if len(verts) else np.zeros(3)
 
     def build(self):
         """Build the scene now (a scan's, on the worker thread that prepares it); returns self."""
         _ = self.scene
         return self
 
-    @property
+    @functools.cached_property
     def scene(self):
-        """The Embree scene of the mesh (None without triangles), built once."""
-        if not self._scene:
-            from embreex import rtcore_scene
-            from embreex.mesh_construction import TriangleMesh
+        """The Embree scene of the mesh (None without triangles), made at the first ray: a query used
+        for closest points only (the deformed skin's, each level) never builds it."""
+        from embreex import rtcore_scene
+        from embreex.mesh_construction import TriangleMesh
 
-            scene = None
-            self.origin = self.verts.min(axis=0) if len(self.verts) else np.zeros(3)
-            if len(self.tris):
-                # coordinates about the mesh's corner, so float32 keeps ~1e-7 of its size wherever it lies
-                scene = rtcore_scene.EmbreeScene(robust=True)
-                TriangleMesh(scene, (self.verts - self.origin).astype(np.float32), self.tris.astype(np.int32))
-                # Embree builds its tree at the scene's first ray: one now, so a scan's tree is built
-                # where the scan is prepared (a worker thread, beside the normals), not in level 0
-                scene.run(np.zeros((1, 3), np.float32), np.ones((1, 3), np.float32), output=1)
-            self._scene.append(scene)
-        return self._scene[0]
+        if not len(self.tris):
+            return None
+        scene = rtcore_scene.EmbreeScene(robust=True)
+        TriangleMesh(scene, (self.verts - self.origin).astype(np.float32), self.tris.astype(np.int32))
+        # Embree builds its tree at the scene's first ray: one now, so a scan's tree is built where the
+        # scan is prepared (a worker thread, beside the normals), not in level 0
+        scene.run(np.zeros((1, 3), np.float32), np.ones((1, 3), np.float32), output=1)
+        return scene
 
     def nearest(self, o, d, lo, hi):
         """(t (nan: none), face, bary) of each ray o + t d (d unit), the nearest hit by |t| with
