@@ -1,6 +1,7 @@
 """Benchmark: anatomy transfer, old (brute-force inside tests) against new, in one run. Prints figures.
 
     ./ha bench transfer [--reps 3] [--seeds 100-103] [--real]
+    ./ha bench transfer --eyes 300-319 [--clicks 11]
 
 The heads: the bundled sample scan adapted as `./ha demo` adapts it (its clicks and markers) and
 from the 8 clicks the panel asks for, the scan-like test heads of --seeds (tools/testheads, style
@@ -22,6 +23,12 @@ less disturbed by other work on a shared machine), their ratio, cold and forget,
 difference of any vertex of any part between old and new, and between forget and new (0:
 bit-identical). Then where the time goes, per stage of the transfer (exclusive seconds of the
 fastest run) and in all inside tests together.
+
+--eyes SEEDS: where the transfer puts the eyes on scan-like test heads (style "scan", adapted from
+their 8 or 11 clicks), against the generator's own eyeballs, mm of the true head: each eye's radius
+and the generator's (the mean distance of its vertices from their centre), the error of its centre
+along the gaze (+: too far forward) and across it, and how much farther apart the two centres are
+than the generator's; then the medians.
 """
 import argparse
 import contextlib
@@ -170,13 +177,60 @@ def heads(tpl, seeds, real):
     return out
 
 
+def eyes(tpl, seeds, click_set):
+    """The --eyes table (module docstring)."""
+    from tools import testheads
+
+    print(f"eyes on scan-like heads, {click_set} clicks, mm of the true head (along: + too far forward)")
+    print(f"{'head':>5s} {'radius L':>8s} {'R':>6s} {'true':>6s} {'along L':>8s} {'R':>6s} {'across L':>8s} {'R':>6s} "
+          f"{'apart':>6s}")
+    cols = {k: [] for k in ("dr", "lr", "along", "across", "apart")}
+    for seed in seeds:
+        head = testheads.make_head(seed, style="scan")
+        clicks = head.clicks_11 if click_set == "11" else head.clicks_8
+        res = adapt.adapt(tpl, head.scan_verts, head.scan_tris, clicks)
+        ana = anatomy.transfer(tpl, res)
+        to_scan, mm = res.similarity.inverse(), 1000.0 / head.similarity[0]
+        row, centres = {}, {}
+        for eye in ("eye_l", "eye_r"):
+            v, true = to_scan.apply(ana.parts[eye]), head.true_parts[eye]
+            c, tc = v.mean(axis=0), true.mean(axis=0)
+            gaze = to_scan.rotation @ ana.rigid[eye].rotation @ np.asarray(tpl.meta["eyes"][eye]["gaze"])
+            gaze /= np.linalg.norm(gaze)
+            d = (c - tc) * mm
+            row[eye] = (np.linalg.norm(v - c, axis=1).mean() * mm, np.linalg.norm(true - tc, axis=1).mean() * mm,
+                        d @ gaze, np.linalg.norm(d - (d @ gaze) * gaze))
+            centres[eye] = (c, tc)
+            cols["dr"].append(row[eye][0] - row[eye][1])
+            cols["along"].append(row[eye][2])
+            cols["across"].append(row[eye][3])
+        (cl, tl), (cr, tr) = centres["eye_l"], centres["eye_r"]
+        apart = (np.linalg.norm(cl - cr) - np.linalg.norm(tl - tr)) * mm
+        cols["apart"].append(apart)
+        cols["lr"].append(abs(row["eye_l"][0] - row["eye_r"][0]))
+        (rl, tl_r, al, xl), (rr, _, ar, xr) = row["eye_l"], row["eye_r"]
+        print(f"{seed:5d} {rl:8.2f} {rr:6.2f} {tl_r:6.2f} {al:8.2f} {ar:6.2f} {xl:8.2f} {xr:6.2f} {apart:6.2f}", flush=True)
+    c = {k: np.asarray(v) for k, v in cols.items()}
+    print(f"radius minus the generator's: mean {c['dr'].mean():.2f}, mean |.| {np.abs(c['dr']).mean():.2f}, largest "
+          f"|.| {np.abs(c['dr']).max():.2f}; the two eyes' radii differ by a median {np.median(c['lr']):.2f}, at most "
+          f"{c['lr'].max():.2f}")
+    print(f"centre along the gaze: mean {c['along'].mean():.2f}, median {np.median(c['along']):.2f}, largest |.| "
+          f"{np.abs(c['along']).max():.2f}; across: median {np.median(c['across']):.2f}, largest "
+          f"{c['across'].max():.2f}; the centres farther apart than the generator's by a median "
+          f"{np.median(c['apart']):.2f}")
+
+
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--reps", type=int, default=3, help="runs each way per head (the fastest counts)")
     parser.add_argument("--seeds", default="100-103", help="scan-like test heads (tools/testheads), '' for none")
     parser.add_argument("--real", action="store_true", help="also the CT and the busts in ../shared/scans")
+    parser.add_argument("--eyes", metavar="SEEDS", help="only where the eyes go on these scan-like heads (docstring)")
+    parser.add_argument("--clicks", choices=("8", "11"), default="11", help="the click set of --eyes")
     args = parser.parse_args(argv)
     tpl = load_template()
+    if args.eyes:
+        return eyes(tpl, parse_seeds(args.eyes), args.clicks)
     rows = []
     kinds = ("old", "cold", "forget", "new")
     for name, result in heads(tpl, parse_seeds(args.seeds) if args.seeds else [], args.real):

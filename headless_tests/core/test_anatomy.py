@@ -212,3 +212,42 @@ def test_a_neighbour_the_bump_pushes_into_the_bone_is_lifted_again_before_the_bu
     assert len(still) == 0 and v in out and u in out
     assert (winding_numbers(lifted[visible], bone, tpl.skull_tris) > 0.5).sum() == 0
     assert len(geometry.folded(tpl.skin.verts, lifted, tpl.skin.tris)) == 0
+
+
+@pytest.fixture(scope="module")
+def scan_like(tpl, testheads):
+    # two scan-like heads (open eyes, their eyeballs scanned) whose lids' FDPs made eq 25 size the two
+    # eyes 2.2 mm apart in radius
+    from headadapt_addon.core import adapt
+
+    out = []
+    for seed in (301, 313):
+        head = testheads.make_head(seed, style="scan")
+        res = adapt.adapt(tpl, head.scan_verts, head.scan_tris, head.clicks_11)
+        out.append((head, res, anatomy.transfer(tpl, res)))
+    return out
+
+
+def test_both_eyes_keep_one_size(tpl, scan_like):
+    # the lids' opening says how open an eye is, not how big the eyeball is: both eyes keep the
+    # template's size in the calibrated head
+    for _, _, ana in scan_like:
+        for eye in ("eye_l", "eye_r"):
+            r0 = np.linalg.norm(tpl.parts[eye].verts - tpl.parts[eye].verts.mean(axis=0), axis=1)
+            r = np.linalg.norm(ana.parts[eye] - ana.parts[eye].mean(axis=0), axis=1)
+            np.testing.assert_allclose(r, r0, rtol=1e-9, err_msg=eye)
+
+
+def test_an_open_eye_meets_the_scanned_eye(tpl, scan_like):
+    # where the scan shows the eye between the adapted lids, the eye's front is where the scan has it
+    # (it was left up to 0.8 mm out of it, or pushed 1 mm behind it as if behind a closed lid)
+    from headadapt_addon.core.anatomy import rigid
+
+    for head, res, ana in scan_like:
+        skin = spatial.MeshQuery(ana.parts["skin"], tpl.skin.tris)
+        for eye in ("eye_l", "eye_r"):
+            v = ana.parts[eye]
+            gaze = ana.rigid[eye].rotation @ np.asarray(tpl.meta["eyes"][eye]["gaze"])
+            reach, through = rigid._front_reach(res.scan.query, v, v.mean(axis=0), gaze / np.linalg.norm(gaze), skin)
+            assert through.sum() >= rigid.SEEN_RAYS, (head.meta, eye)
+            assert abs(np.median(reach[through])) < 1e-4, (eye, np.median(reach[through]))    # 0.1 mm

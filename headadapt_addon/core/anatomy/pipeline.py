@@ -11,7 +11,7 @@ from ..template import Template
 from .bone import clear_visible_skin, keep_inside, relax_cleared, unrelax_under_skin
 from .lift import lift_visible_skin
 from .model import Anatomy
-from .rigid import RIGID_FDPS, rigid_from_fdps, seat_orbits, surface_point
+from .rigid import EYE_SCALE, RIGID_FDPS, rigid_from_fdps, seat_orbits, surface_point
 
 
 def transfer(tpl: Template, result: AdaptResult) -> Anatomy:
@@ -27,7 +27,8 @@ def transfer(tpl: Template, result: AdaptResult) -> Anatomy:
     for name, (x_pair, y_pair, ref) in RIGID_FDPS.items():
         # centre through the map (it carries the socket around the part), scale and turn by eq 25
         centre = result.map_points(tpl.parts[name].verts.mean(axis=0)[None])[0]
-        sim = rigid_from_fdps(tpl.parts[name].verts, tpl_fdps, fdps, x_pair, y_pair, ref, centre)
+        sim = rigid_from_fdps(tpl.parts[name].verts, tpl_fdps, fdps, x_pair, y_pair, ref, centre,
+                              scale=EYE_SCALE if name.startswith("eye") else None)
         rigid[name] = sim
         parts[name] = sim.apply(tpl.parts[name].verts)
     # the skull through the final map (all last-level FPs)
