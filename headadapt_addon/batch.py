@@ -440,7 +440,7 @@ def as_blender_stores(verts):
 def adapt_options(levels=None, calibration="auto", keep_flagged=False):
     """The AdaptOptions of the batch's choices; the panels build theirs through this too
     (ui.operators.adapt_options), so the same scan and clicks give the same result in both (with the
-    same spatial backend: spatial_backend(); Blender's own Python has no embreex, so the numpy tree)."""
+    same spatial backend: spatial_backend(); inside Blender the numpy tree)."""
     from .core.adapt import AdaptOptions
     return AdaptOptions(max_levels=AdaptOptions.max_levels if levels is None else levels,
                         calibration=calibration, drop_flagged=not keep_flagged, backend=spatial_backend())
@@ -448,8 +448,9 @@ def adapt_options(levels=None, calibration="auto", keep_flagged=False):
 
 def spatial_backend():
     """The batch's spatial backend, inside Blender or not: "embree" where the embreex package is
-    installed (requirements.txt: rays in C, the adaptation in about 0.8 of the time), else the numpy
-    tree (core/mesh/bvh.py), never Blender's, so the batch imports bpy only to write a .blend (importing
+    installed (requirements.txt: rays in C, the adaptation in about 0.8 of the time) and this is not
+    a Blender executable (whose own Embree would take embreex's calls: embree.available), else the
+    numpy tree (core/mesh/bvh.py), never Blender's, so the batch imports bpy only to write a .blend (importing
     it costs about a second of the command, and a worker whose memory limit stops bpy loading still
     adapts). The two give the same heads up to float32 rounding at a ray's tie (report.json:
     spatial_backend)."""

@@ -9,6 +9,7 @@ import os
 import pathlib
 import shutil
 import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -32,7 +33,8 @@ def _readers_path(folder):
     for module in (plyfile, trimesh):
         source = pathlib.Path(module.__file__)
         source = source.parent if source.name == "__init__.py" else source
-        (folder / source.name).symlink_to(source)
+        if not (folder / source.name).exists():
+            (folder / source.name).symlink_to(source)
     return folder
 
 
@@ -106,3 +108,23 @@ def test_adapt_pressed_twice_in_a_real_window_runs_once(tmp_path):
     assert result["first"] == ["RUNNING_MODAL"], result
     assert result["second"] == "refused: Adapt is running: wait for it, or press Esc to cancel it", result
     assert result["results"] == 1 and result["usable_again"], result
+
+
+def test_a_blender_binary_that_can_import_embreex_keeps_the_numpy_tree(tmp_path):
+    # Blender's executable links its own Embree and TBB: embreex on its Python's path (a system-Python
+    # Blender with requirements.txt installed, or --python-use-system-env) took the first ray to a
+    # segmentation fault, exit 139 and no result
+    embreex = pytest.importorskip("embreex")
+    proc = subprocess.run([BLENDER, "-b", "--factory-startup", "--python-expr", "import sys; print('PY', *sys.version_info[:2])"],
+                          capture_output=True, text=True, timeout=300)
+    if f"PY {sys.version_info[0]} {sys.version_info[1]}" not in proc.stdout:
+        pytest.skip("this environment's embreex is built for another Python than Blender's")
+    readers = _readers_path(tmp_path / "readers")
+    source = pathlib.Path(embreex.__file__).parent
+    for path in (source, source.parent / "embreex.libs"):
+        if path.exists():
+            (readers / path.name).symlink_to(path)
+    proc = _run("adapt", "--scan", str(SAMPLE_DIR / "scan.ply"), "--landmarks", str(SAMPLE_DIR / "landmarks.json"),
+                "--out", str(tmp_path / "o"), "--levels", "2", cwd=tmp_path)
+    assert proc.returncode == 0, (proc.returncode, proc.stdout[-2000:] + proc.stderr[-2000:])
+    assert json.loads((tmp_path / "o" / "report.json").read_text())["spatial_backend"] == "numpy"

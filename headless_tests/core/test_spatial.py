@@ -287,6 +287,24 @@ def test_the_embree_backend_is_asked_for_and_refused_by_name(monkeypatch):
     assert q.backend == "embree" and q.rays.scene is not None
 
 
+def test_embree_is_not_used_inside_a_blender_executable(monkeypatch):
+    """A Blender executable's own Embree takes embreex's calls (a segfault in Debian's Blender 3.4:
+    test_blender_binary); the bpy module, which has no executable, keeps it."""
+    import types
+
+    from headadapt_addon import batch
+    from headadapt_addon.core.mesh import embree
+
+    pytest.importorskip("embreex")
+    fake = types.SimpleNamespace(app=types.SimpleNamespace(binary_path="/usr/bin/blender"))
+    monkeypatch.setitem(__import__("sys").modules, "bpy", fake)
+    assert not embree.available() and batch.spatial_backend() == "numpy"
+    with pytest.raises(RuntimeError, match="inside a Blender executable"):
+        spatial.MeshQuery(np.eye(3), [[0, 1, 2]], backend="embree")
+    fake.app.binary_path = ""                 # the bpy module
+    assert embree.available() and batch.spatial_backend() == "embree"
+
+
 def test_large_query_sets_are_walked_in_chunks(skin, monkeypatch):
     verts, tris = skin
     q = spatial.MeshQuery(verts, tris)

@@ -13,14 +13,28 @@ asked of the numpy tree instead. Closest points are the numpy tree's (embreex ha
 from __future__ import annotations
 
 import functools
+import sys
 
 import numpy as np
 
 from .triangles import ray_choice
 
 
+def inside_blender_executable() -> bool:
+    """Whether this Python runs inside a Blender executable (not the bpy module, which has none). The
+    executable links its own Embree (Cycles) and TBB into the process's global symbols, and
+    embreex's calls reach those: Debian's Blender 3.4 crashed (segmentation fault) at the first ray
+    with embreex 4.4 on its Python's path, where the same Python outside Blender and the bpy module
+    (which loads its libraries privately) cast the rays right. bpy is not imported here."""
+    bpy = sys.modules.get("bpy")
+    return bool(getattr(getattr(bpy, "app", None), "binary_path", ""))
+
+
 def available() -> bool:
-    """Whether the embreex package can be imported here (it is not bundled in the Blender extension)."""
+    """Whether Embree can be used here: the embreex package importable (it is not bundled in the
+    Blender extension), outside a Blender executable (inside_blender_executable)."""
+    if inside_blender_executable():
+        return False
     try:
         import embreex.rtcore_scene  # noqa: F401
     except ImportError:
@@ -33,6 +47,10 @@ class EmbreeRays:
 
     def __init__(self, verts: np.ndarray, tris: np.ndarray, tree):
         from embreex import rtcore_scene  # noqa: F401  (refused here, not at the first ray, if missing)
+
+        if inside_blender_executable():
+            raise RuntimeError("the embree spatial backend cannot run inside a Blender executable (Blender's "
+                               "own Embree takes its calls and crashes); use the numpy backend")
 
         self.verts, self.tris, self.tree = verts, tris, tree     # tree: the numpy TriangleBVH (fallback)
         # coordinates about the mesh's corner, so float32 keeps ~1e-7 of its size wherever it lies
