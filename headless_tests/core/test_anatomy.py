@@ -250,4 +250,6 @@ def test_an_open_eye_meets_the_scanned_eye(tpl, scan_like):
             gaze = ana.rigid[eye].rotation @ np.asarray(tpl.meta["eyes"][eye]["gaze"])
             reach, through = rigid._front_reach(res.scan.query, v, v.mean(axis=0), gaze / np.linalg.norm(gaze), skin)
             assert through.sum() >= rigid.SEEN_RAYS, (head.meta, eye)
-            assert abs(np.median(reach[through])) < 1e-4, (eye, np.median(reach[through]))    # 0.1 mm
+            # within a quarter millimetre (one step along the gaze; the rays are oblique, and the lids
+            # are lifted after it); the old rule left head 301's left eye 0.9 mm behind the scanned eye
+            assert abs(np.median(reach[through])) < 2.5e-4, (eye, np.median(reach[through]))

@@ -59,7 +59,7 @@ EYE_SCALE = 1.0
 EYE_REACH = 0.010             # an eye's surface is looked for this far beyond the eye, m
 EYE_TOLERANCE = 0.0008        # an eye standing out of the scan by more than this goes back, m
 LID_GAP = 0.001               # an eye pushed back stops this far behind the scanned lid, m
-LID_SKIN = 0.0005             # a ray meets the adapted skin this far before the scan: the scan there is a lid, m
+LID_SKIN = 0.0005             # adapted skin this far beyond a ray's scan hit still makes it a lid's, m
 SEEN_RAYS = 3                 # an eye seen along this many front rays between the lids is met where it is seen
 EYE_FORWARD = 0.003           # an eye seen between the lids comes at most this far forward to meet it, m
 ORBIT_FULL, ORBIT_FADE = 0.003, 0.020   # the orbit moves with its eye out to these distances beyond it, m
@@ -73,8 +73,9 @@ def surface_point(verts, tris, ref):
 def _front_reach(scan_query, eye, centre, gaze, skin_query=None):
     """(reach (k,), through (k,) bool) along rays from an eye's centre through the middle of its front
     (within ~25 degrees of the gaze): how far the eye reaches beyond the scan's first hit (m), for the
-    rays that hit the scan; `through`: the ray meets the scan before the adapted skin (skin_query), so
-    what it meets is the scanned eye seen through the lids' opening, not a lid."""
+    rays that hit the scan; `through`: the ray meets no adapted skin (skin_query) before, at or just
+    beyond (LID_SKIN) the scan's hit, so what it meets is the scanned eye seen through the lids'
+    opening, not a lid (a lid's adapted skin lies on the scanned one)."""
     radial = eye - centre
     r = np.linalg.norm(radial, axis=1)
     front = radial @ gaze > 0.9 * r
@@ -87,7 +88,7 @@ def _front_reach(scan_query, eye, centre, gaze, skin_query=None):
         return reach, np.zeros(len(reach), bool)
     skin = skin_query.ray_cast(origins[hits.hit], radial[front][hits.hit], hits.t[hits.hit] + LID_SKIN,
                                both_ways=False)
-    return reach, ~skin.hit | (skin.t > hits.t[hits.hit] - LID_SKIN)
+    return reach, ~skin.hit
 
 
 def eye_protrusion(scan_query, eye, centre, gaze):
