@@ -26,9 +26,10 @@ fastest run) and in all inside tests together.
 
 --eyes SEEDS: where the transfer puts the eyes on scan-like test heads (style "scan", adapted from
 their 8 or 11 clicks), against the generator's own eyeballs, mm of the true head: each eye's radius
-and the generator's (the mean distance of its vertices from their centre), the error of its centre
-along the gaze (+: too far forward) and across it, and how much farther apart the two centres are
-than the generator's; then the medians.
+and the generator's (the mean distance of its vertices from their centre; the generator's two are
+alike), the error of its front along the gaze (its most forward point against the generator's eye's,
++: too far forward), of its centre along the gaze and across it, and how much farther apart the two
+centres are than the generator's; then the medians.
 """
 import argparse
 import contextlib
@@ -182,9 +183,9 @@ def eyes(tpl, seeds, click_set):
     from tools import testheads
 
     print(f"eyes on scan-like heads, {click_set} clicks, mm of the true head (along: + too far forward)")
-    print(f"{'head':>5s} {'radius L':>8s} {'R':>6s} {'true':>6s} {'along L':>8s} {'R':>6s} {'across L':>8s} {'R':>6s} "
-          f"{'apart':>6s}")
-    cols = {k: [] for k in ("dr", "lr", "along", "across", "apart")}
+    print(f"{'head':>5s} {'radius L':>8s} {'R':>6s} {'true':>6s} {'front L':>8s} {'R':>6s} {'along L':>8s} {'R':>6s} "
+          f"{'across L':>8s} {'R':>6s} {'apart':>6s}")
+    cols = {k: [] for k in ("dr", "lr", "front", "along", "across", "apart")}
     for seed in seeds:
         head = testheads.make_head(seed, style="scan")
         clicks = head.clicks_11 if click_set == "11" else head.clicks_8
@@ -199,7 +200,8 @@ def eyes(tpl, seeds, click_set):
             gaze /= np.linalg.norm(gaze)
             d = (c - tc) * mm
             row[eye] = (np.linalg.norm(v - c, axis=1).mean() * mm, np.linalg.norm(true - tc, axis=1).mean() * mm,
-                        d @ gaze, np.linalg.norm(d - (d @ gaze) * gaze))
+                        d @ gaze, np.linalg.norm(d - (d @ gaze) * gaze), ((v @ gaze).max() - (true @ gaze).max()) * mm)
+            cols["front"].append(row[eye][4])
             centres[eye] = (c, tc)
             cols["dr"].append(row[eye][0] - row[eye][1])
             cols["along"].append(row[eye][2])
@@ -208,12 +210,15 @@ def eyes(tpl, seeds, click_set):
         apart = (np.linalg.norm(cl - cr) - np.linalg.norm(tl - tr)) * mm
         cols["apart"].append(apart)
         cols["lr"].append(abs(row["eye_l"][0] - row["eye_r"][0]))
-        (rl, tl_r, al, xl), (rr, _, ar, xr) = row["eye_l"], row["eye_r"]
-        print(f"{seed:5d} {rl:8.2f} {rr:6.2f} {tl_r:6.2f} {al:8.2f} {ar:6.2f} {xl:8.2f} {xr:6.2f} {apart:6.2f}", flush=True)
+        (rl, tl_r, al, xl, fl), (rr, _, ar, xr, fr) = row["eye_l"], row["eye_r"]
+        print(f"{seed:5d} {rl:8.2f} {rr:6.2f} {tl_r:6.2f} {fl:8.2f} {fr:6.2f} {al:8.2f} {ar:6.2f} {xl:8.2f} {xr:6.2f} "
+              f"{apart:6.2f}", flush=True)
     c = {k: np.asarray(v) for k, v in cols.items()}
     print(f"radius minus the generator's: mean {c['dr'].mean():.2f}, mean |.| {np.abs(c['dr']).mean():.2f}, largest "
           f"|.| {np.abs(c['dr']).max():.2f}; the two eyes' radii differ by a median {np.median(c['lr']):.2f}, at most "
           f"{c['lr'].max():.2f}")
+    print(f"front along the gaze: mean {c['front'].mean():.2f}, mean |.| {np.abs(c['front']).mean():.2f}, largest |.| "
+          f"{np.abs(c['front']).max():.2f}")
     print(f"centre along the gaze: mean {c['along'].mean():.2f}, median {np.median(c['along']):.2f}, largest |.| "
           f"{np.abs(c['along']).max():.2f}; across: median {np.median(c['across']):.2f}, largest "
           f"{c['across'].max():.2f}; the centres farther apart than the generator's by a median "

@@ -111,14 +111,16 @@ def test_expressions_bake_cleanly_on_the_real_ct(ct):
     _assert_keys_bake_cleanly(ct.tpl, ct.anatomy)
 
 
-def test_eyes_sit_behind_the_closed_lids(ct):
-    # the map carries the eyes 6 mm out through this person's closed lids; they go back, and their
-    # orbits with them, so the eye's front stays behind the scanned lid
+def test_eyes_do_not_stand_out_through_the_closed_lids(ct):
+    # the map carries the eyes 1.2 to 1.4 mm out through this person's closed lids; they go back, and
+    # their orbits with them, until the eye's front meets the scanned lid (the template's lids stay
+    # open on it, so the closed lid between them is taken for the eye: seat_orbits)
     for eye in ("eye_l", "eye_r"):
         v = ct.anatomy.parts[eye]
         centre = v.mean(axis=0)
         gaze = ct.anatomy.rigid[eye].rotation @ np.asarray(ct.tpl.meta["eyes"][eye]["gaze"])
-        assert anatomy.eye_protrusion(ct.result.scan.query, v, centre, gaze / np.linalg.norm(gaze)) == 0.0, eye
+        out = anatomy.eye_protrusion(ct.result.scan.query, v, centre, gaze / np.linalg.norm(gaze)) * ct.mm
+        assert out < 0.25, (eye, out)
     d = ct.bone_distance_mm(ct.transferred_bone())
     assert np.median(d) < 2.2 and np.percentile(d, 90) < 6.0, (np.median(d), np.percentile(d, 90))
 

@@ -61,7 +61,6 @@ EYE_TOLERANCE = 0.0008        # an eye standing out of the scan by more than thi
 LID_GAP = 0.001               # an eye pushed back stops this far behind the scanned lid, m
 LID_SKIN = 0.0005             # adapted skin this far beyond a ray's scan hit still makes it a lid's, m
 SEEN_RAYS = 3                 # an eye seen along this many front rays between the lids is met where it is seen
-EYE_FORWARD = 0.003           # an eye seen between the lids comes at most this far forward to meet it, m
 ORBIT_FULL, ORBIT_FADE = 0.003, 0.020   # the orbit moves with its eye out to these distances beyond it, m
 
 
@@ -102,10 +101,12 @@ def eye_protrusion(scan_query, eye, centre, gaze):
 
 
 def seat_orbits(tpl, scan, parts, rigid, mapped):
-    """Each eye's depth along its gaze from the scan, and the orbit moved with it: an eye the scan shows
-    through the adapted lids' opening (an open eye, scanned) goes forward or back until its front meets
-    the scanned eye (at most EYE_FORWARD forward); one behind lids (closed or deep-set, the map put it
-    out through them) goes back, if it stands out by over EYE_TOLERANCE, until LID_GAP behind them.
+    """Each eye's depth along its gaze from the scan, and the orbit moved with it: an eye that stands
+    out of what the scan shows through the adapted lids' opening (an open eye, scanned) goes back until
+    its front meets it; one the adapted lids cover (deep-set, or the map put it out through them) goes
+    back, if it stands out by over EYE_TOLERANCE, until LID_GAP behind them. An eye is never brought
+    forward. The template's lids stay open on a scan with closed eyes, so there the scanned lid
+    between them counts as the eye: the eye goes back until it meets the lid, not LID_GAP behind it.
     The eye socket's lining and the bone around the eye (`mapped`: {bone: (n,3)} through the map) move
     by the same shift, fading out with distance. parts[eye] and rigid[eye] are updated; returns (skin
     with the sockets moved, bone offsets {bone: (n,3)}), template frame, m."""
@@ -123,7 +124,10 @@ def seat_orbits(tpl, scan, parts, rigid, mapped):
         gaze = sim.rotation @ (g0 / np.linalg.norm(g0))
         reach, through = _front_reach(scan.query, parts[eye], centre, gaze, skin_query)
         if through.sum() >= SEEN_RAYS:          # the scanned eye, seen between the lids: meet it
-            shift = -max(float(np.median(reach[through])), -EYE_FORWARD) * gaze
+            push = float(np.median(reach[through]))
+            if push <= 0.0:
+                continue
+            shift = -push * gaze
         else:
             push = max(float(np.median(reach)), 0.0) if len(reach) else 0.0
             if push <= EYE_TOLERANCE:       # within what the FDP-carried eye is off anyway

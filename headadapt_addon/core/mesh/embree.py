@@ -27,7 +27,9 @@ def inside_blender_executable() -> bool:
     with embreex 4.4 on its Python's path, where the same Python outside Blender and the bpy module
     (which loads its libraries privately) cast the rays right. bpy is not imported here."""
     bpy = sys.modules.get("bpy")
-    return bool(getattr(getattr(bpy, "app", None), "binary_path", ""))
+    origin = str(getattr(getattr(bpy, "__spec__", None), "origin", None) or "")
+    module = origin.endswith((".so", ".pyd"))        # the bpy module: site-packages/bpy/__init__.so
+    return bool(getattr(getattr(bpy, "app", None), "binary_path", "")) and not module
 
 
 def available() -> bool:
@@ -46,11 +48,10 @@ class EmbreeRays:
     """Nearest ray hits on one triangle mesh by Embree, checked in float64 (see the module)."""
 
     def __init__(self, verts: np.ndarray, tris: np.ndarray, tree):
-        from embreex import rtcore_scene  # noqa: F401  (refused here, not at the first ray, if missing)
-
         if inside_blender_executable():
             raise RuntimeError("the embree spatial backend cannot run inside a Blender executable (Blender's "
                                "own Embree takes its calls and crashes); use the numpy backend")
+        from embreex import rtcore_scene  # noqa: F401  (refused here, not at the first ray, if missing)
 
         self.verts, self.tris, self.tree = verts, tris, tree     # tree: the numpy TriangleBVH (fallback)
         # coordinates about the mesh's corner, so float32 keeps ~1e-7 of its size wherever it lies
