@@ -183,8 +183,8 @@ def clear_animation(root, names):
         fcurves = _fcurves(root) if root.animation_data and root.animation_data.action else None
         for fc in [f for f in (fcurves or ()) if f.data_path in ("location", *ROTATIONS)]:
             fcurves.remove(fc)
-        rest = np.reshape(root[HEAD_REST], (4, 4))       # its turn and place; its scale as it is now
-        rest[:3, :3] = rest[:3, :3] / np.linalg.norm(rest[:3, :3], axis=0) * np.array(root.scale)
+        rest, turn = _head_rest(root)                    # its turn and place; its scale as it is now
+        rest[:3, :3] = turn * np.array(root.scale)
         root.matrix_basis = mathutils.Matrix(rest.tolist())
 
 
@@ -196,6 +196,12 @@ def _keyed_name(data_path):
 
 HEAD_REST = "headadapt_head_rest"        # the root's matrix_basis before a .fap first turned it
 ROTATIONS = ("rotation_euler", "rotation_quaternion", "rotation_axis_angle")
+
+
+def _head_rest(root):
+    """The root's rest pose (HEAD_REST) as (its 4x4 matrix, its turn: the 3x3 part with unit columns)."""
+    rest = np.reshape(root[HEAD_REST], (4, 4))
+    return rest, rest[:3, :3] / np.linalg.norm(rest[:3, :3], axis=0)
 
 
 def head_rotation(root, anim, frames):
@@ -211,8 +217,8 @@ def head_rotation(root, anim, frames):
         return 0
     if HEAD_REST not in root:
         root[HEAD_REST] = [float(v) for row in root.matrix_basis for v in row]
-    rest = np.reshape(root[HEAD_REST], (4, 4))
-    rest_turn = Rotation.from_matrix(rest[:3, :3] / np.linalg.norm(rest[:3, :3], axis=0))
+    rest, turn = _head_rest(root)
+    rest_turn = Rotation.from_matrix(turn)
     scale = np.array(root.scale)            # the artist's now (a root scaled for export since the rest)
     keyed = np.zeros(len(frames), bool)
     turn = np.zeros((len(frames), 3))
