@@ -27,6 +27,7 @@ as bench adapt measures (mm of the true head on the seen face: correspondence, s
 whole scan, markers), the head's truth made again by tools/testheads.
 """
 import argparse
+import compileall
 import cProfile
 import json
 import os
@@ -251,6 +252,9 @@ def main(argv=None):
     if args.accuracy:
         accuracy({n: heads[n] for n in sizes})
         return
+    # the package's bytecode made first, as Python keeps it on a machine that does not set
+    # PYTHONDONTWRITEBYTECODE (this one's sandbox does): each timed process imports it, nricp's child too
+    compileall.compile_dir(str(ROOT / "headadapt_addon"), quiet=1)
     work = pathlib.Path(tempfile.mkdtemp(prefix="headadapt-scale-"))
     print(f"\n{'verts':>9s} | {'headadapt: cmd s':>16s} {'adapt s':>7s} {'peak MB':>7s} | "
           f"{'nricp: cmd s':>12s} {'fit s':>7s} {'peak MB':>7s} | {'ratio cmd':>9s} {'fit/adapt':>9s}")
