@@ -53,7 +53,9 @@ def start(directory, recipes, anatomy=None):
             or os.environ.get("HEADADAPT_BAKE_HELPER") == "0"):
         return None
     addon = pathlib.Path(__file__).resolve().parents[2]
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join(p for p in sys.path if p)}
+    # one BLAS thread in the helper (the user's setting wins): two processes on two cores, OpenBLAS's
+    # own threads beside them only spin for work
+    env = {"OPENBLAS_NUM_THREADS": "1", **os.environ, "PYTHONPATH": os.pathsep.join(p for p in sys.path if p)}
     try:
         proc = subprocess.Popen([sys.executable, "-c", _CHILD, str(addon.parent), addon.name], stdin=subprocess.PIPE,
                                 stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, env=env)
