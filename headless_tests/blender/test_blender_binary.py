@@ -115,9 +115,9 @@ def test_a_blender_binary_that_can_import_embreex_keeps_the_numpy_tree(tmp_path)
     # Blender with requirements.txt installed, or --python-use-system-env) took the first ray to a
     # segmentation fault, exit 139 and no result
     embreex = pytest.importorskip("embreex")
+    env = {k: v for k, v in os.environ.items() if k != "OCIO"}
     proc = subprocess.run([BLENDER, "-b", "--factory-startup", "--python-expr", "import sys; print('PY', *sys.version_info[:2])"],
-                          capture_output=True, text=True, timeout=300,
-                          env={k: v for k, v in os.environ.items() if k != "OCIO"})
+                          capture_output=True, text=True, timeout=300, env=env)
     if f"PY {sys.version_info[0]} {sys.version_info[1]}" not in proc.stdout:
         pytest.skip("this environment's embreex is built for another Python than Blender's")
     readers = _readers_path(tmp_path / "readers")
@@ -126,11 +126,9 @@ def test_a_blender_binary_that_can_import_embreex_keeps_the_numpy_tree(tmp_path)
         if path.exists():
             (readers / path.name).symlink_to(path)
     # the hazard is there: Blender's Python imports it (else the test would pass without the fix)
-    env = {k: v for k, v in os.environ.items() if k != "OCIO"}
-    env["PYTHONPATH"] = str(readers)
     probe = subprocess.run([BLENDER, "-b", "--factory-startup", "--python-expr",
                             "import embreex.rtcore_scene; print('EMBREEX IMPORTED')"],
-                           capture_output=True, text=True, env=env, timeout=300)
+                           capture_output=True, text=True, env={**env, "PYTHONPATH": str(readers)}, timeout=300)
     assert "EMBREEX IMPORTED" in probe.stdout, probe.stdout[-1000:] + probe.stderr[-1000:]
     proc = _run("adapt", "--scan", str(SAMPLE_DIR / "scan.ply"), "--landmarks", str(SAMPLE_DIR / "landmarks.json"),
                 "--out", str(tmp_path / "o"), "--levels", "2", cwd=tmp_path)

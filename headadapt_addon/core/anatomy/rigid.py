@@ -96,7 +96,11 @@ def eye_protrusion(scan_query, eye, centre, gaze):
     the gaze, where an open eye shows its cornea and a closed one its lids), the median reach of the
     eye beyond the scan's first hit; 0 where the scan has nothing in front of the eye (a hole).
     Not the maximum: at the lid margins an eye off by a millimetre sideways reaches through them."""
-    reach = _front_reach(scan_query, eye, centre, gaze)[0]
+    return _out_by(_front_reach(scan_query, eye, centre, gaze)[0])
+
+
+def _out_by(reach):
+    """The median of an eye's reaches beyond the scan (_front_reach), not below 0; 0 for none."""
     return max(float(np.median(reach)), 0.0) if len(reach) else 0.0
 
 
@@ -129,7 +133,7 @@ def seat_orbits(tpl, scan, parts, rigid, mapped):
                 continue
             shift = -push * gaze
         else:
-            push = max(float(np.median(reach)), 0.0) if len(reach) else 0.0
+            push = _out_by(reach)
             if push <= EYE_TOLERANCE:       # within what the FDP-carried eye is off anyway
                 continue
             shift = -(push + LID_GAP) * gaze
