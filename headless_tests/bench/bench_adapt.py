@@ -25,8 +25,9 @@ peers are not. Every figure is in mm of the true head (the scan's unit divided o
                   face regions' vertices whose true position lies on the scan (not in a hole, not
                   hidden from every scanner)
   surf RMS        distance of the same vertices from the scan's surface (printed beside it: the true
-                  skin's own, the figure's floor: the scan's noise, and the scan is the head Catmull-Clark
-                  subdivided while the template's vertices are the control points)
+                  skin's own, which is not 0: the scan's noise, and the scan is the head Catmull-Clark
+                  subdivided while the template's vertices are the control points; a fit laid onto
+                  the scan, as HeadAdapt's last step lays it, lies nearer)
   marker RMS      the held-out FDPs (the template's face + barycentrics on the adapted vertices)
                   against their true positions
   s               seconds of the method (peers: without the shared calibration)
@@ -160,7 +161,8 @@ def report(rows, methods, set_name):
     print(f"{'median':>21s}    " + " | ".join(f"{_fmt(med[m]):^29s}" for m in methods))
     floor = np.array([r["true_surf"] for r in rows])
     print(f"the true skin itself lies {np.median(floor):.2f} mm RMS from the scan on the seen face (median; "
-          f"{floor.min():.2f} to {floor.max():.2f}): the surface figure's floor")
+          f"{floor.min():.2f} to {floor.max():.2f}): the scan's noise, and its vertices are the control points "
+          f"of the subdivided surface the scan is")
     if "nricp_amberg" in methods:
         n = len(rows)
         corr = sum(r["headadapt"]["corr_rms"] < r["nricp_amberg"]["corr_rms"] for r in rows)
@@ -186,7 +188,7 @@ def synthetic(args):
         made = time.perf_counter() - t0
         seen = face & head.true_on_scan
         query = spatial.MeshQuery(head.scan_verts, head.scan_tris, backend=testheads.BACKEND)
-        # the surface figure's floor (the module's "surf RMS"): the true skin's own distance from the scan
+        # the true skin's own distance from the scan (the module's "surf RMS")
         true_surf = measure(tpl, head, head.true_template, seen, query)["surf_rms"]
         for name in sets:
             clicks = {k: head.fdp_clicks[k] for k in CLICK_SETS[name] if k in head.fdp_clicks}

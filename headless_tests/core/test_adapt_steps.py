@@ -21,6 +21,7 @@ from headadapt_addon.core.adapt.options import FACE_REGIONS
 from headadapt_addon.core.adapt.pairs import curvature_pairs, feature_mesh_pairs, surface_pairs
 from headadapt_addon.core.adapt.pipeline import Unfolding
 from headadapt_addon.core.adapt.scan import ScanSide
+from headadapt_addon.core.adapt.snap import snap_to_scan
 from headadapt_addon.core.mesh import geometry
 
 MM = 1000.0
@@ -261,6 +262,38 @@ def test_unfolding_relaxes_a_level_s_folds_as_it_will_be_delivered(tpl, case):
     assert report["folded_triangles"] == n and report["folded_left"] == 0 and report["vertices_relaxed"] > 0
     assert len(geometry.folded(fit.V, out, fit.tris)) == 0 and unfold.seconds >= unfold.last > 0
 
+
+
+def test_the_snap_lays_the_skin_onto_the_scan_and_follows_neighbours_over_a_hole(tpl, case):
+    """snap.py, the last step: a skin 1 mm in front of the scan (the truth moved forward: folded nowhere,
+    as a fit the levels leave; 1 mm along the normals already turns 42 of the template's smallest lid
+    and lip triangles over) is laid onto the scan, moved no farther than snap_reach and folded nowhere;
+    where the scan has a hole (the left cheek's triangles cut out) the skin has no pair and follows its
+    neighbours."""
+    scan_v, scan_t, truth, _ = case
+    cheek = tpl.region_mask("cheek_l")
+    holed = scan_t[~cheek[scan_t].any(axis=1)]
+    options = adapt.AdaptOptions()
+    fit = Fit(tpl, ScanSide(scan_v, holed, options), options, float(np.ptp(tpl.skin.verts[:, 0])) / 10)
+    off = truth + np.array([0.0, -0.001, 0.0])          # the face looks toward -y
+    face = _face(tpl) & ~cheek
+    before = fit.scan.query.closest_points(off[face])[2]
+    assert np.median(before) * MM > 0.6
+    out, info = snap_to_scan(fit, off)
+    after = fit.scan.query.closest_points(out[face])[2]
+    rms = [float(np.sqrt(np.mean(d ** 2))) * MM for d in (before, after)]
+    assert np.median(after) * MM < 0.05 and rms[1] < 0.4 * rms[0], rms
+    assert _corr_mm(tpl, out, truth) < 0.8 * _corr_mm(tpl, off, truth)     # its part along the normals
+    assert np.linalg.norm(out - off, axis=1).max() <= options.snap_reach + 1e-9
+    assert len(fit.folds(out)) == 0 and info["snapped"] and info["paired"] > 1000
+    # over the hole: no pair, yet the skin came in with the face round it (by the membrane)
+    edges = (fit.ring != 0).astype(float)
+    inner = cheek & ((edges @ (edges @ (~cheek).astype(float))) == 0)      # two rings in from its border
+    inward = (out - off)[inner, 1] * MM
+    assert inner.sum() > 50 and np.median(inward) > 0.3, np.percentile(inward, [5, 50, 95])
+    # off: the pipeline leaves the skin as the levels left it
+    skip = adapt.adapt(tpl, scan_v, scan_t, case[3], adapt.AdaptOptions(snap_reach=0.0, max_levels=1))
+    assert skip.snapped is None and skip.report()["snapped"] is None and skip.stages["snap"] < 1e-3
 
 def test_adapt_recovers_the_known_deformation(tpl, case):
     scan_v, scan_t, truth, clicks = case

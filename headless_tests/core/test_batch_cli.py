@@ -107,7 +107,7 @@ def test_results_are_replaced_only_with_overwrite_and_a_failed_rerun_leaves_no_s
     report = json.loads((out / "report.json").read_text())
     assert report["status"] == "done"
     stages = report["stage_seconds"]        # where the time went, without the .blend's transfer and bake
-    assert list(stages) == ["read", "calibrate", "prepare", "level_0", "level_1", "unfold"], stages
+    assert list(stages) == ["read", "calibrate", "prepare", "level_0", "level_1", "snap", "unfold"], stages
     assert all(s > 0 for s in stages.values()) and sum(stages.values()) <= report["total_seconds"]
     assert report["inputs_sha256"] == {"scan": digest(scan), "landmarks": digest(marks)}
     kept = {p.name: digest(p) for p in out.iterdir()}

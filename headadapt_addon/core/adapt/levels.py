@@ -169,5 +169,13 @@ def solve_spd(A, b, x0=None, factor=None, rtol=1e-5, jacobi_steps=250, lu_steps=
         x = krylov(lambda r: factor.solve(np.ascontiguousarray(r)), lu_steps)
     if x is not None:
         return x, factor
-    factor = splu(A.tocsc(), permc_spec="MMD_AT_PLUS_A")
+    factor = factor_spd(A.tocsc())
     return factor.solve(np.ascontiguousarray(b)), factor
+
+
+def factor_spd(A):
+    """SuperLU's factorisation of a symmetric positive definite csc matrix, pivoting on its diagonal in a
+    symmetric minimum-degree ordering: about a third of the time of SuperLU's partial pivoting, which
+    breaks the ordering's symmetry (Fran's finest level, 3,348 centres: 0.04 against 0.15 s; the
+    solutions agree to 1e-12 of their size)."""
+    return splu(A, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})

@@ -87,6 +87,13 @@ class AdaptOptions:
                                         # there may land on the other lip (4 mm, the first value, left half the
                                         # lip red unpaired: seen-face surface RMS 0.32 against 0.27 mm on tuning
                                         # heads; 1 mm fitted as well but turned legacy head 3's smile key)
+    snap_reach: float = 0.002           # the last step lays each seen vertex onto the scan along its normal
+                                        # within this (snap.py), m; 0: no snap. Tuning heads 0-11, 8 and 11
+                                        # clicks: surface 0.257 -> 0.214 mm (median; better on all 24),
+                                        # correspondence -0.002 mm (better on 20), markers the same
+    snap_smooth: float = 0.1            # ... stretching its displacement over each skin edge with this weight
+                                        # against 1 on each vertex's distance (0.03 to 1 tried: 0.1 nearest)
+    snap_fold_rounds: int = 5           # ... solved again with wider pins round what it would fold
     alpha: float = 1.0                  # weight of E_d in E (eq 24)
     beta: float = 0.01                  # weight of E_m in E (E_m sums over markers, E_d averages)
     stop_at_minimum: bool = False       # stop when E rises (sec 5.3); all levels run and the least E is
@@ -151,6 +158,7 @@ class AdaptResult:
     distances: np.ndarray             # (n,) distance of each adapted skin vertex to the scan, m (nan: no match)
     scan: object = None               # the calibrated scan (template frame) with its queries
     unfolded: dict = None             # folded triangles after the fit, vertices relaxed, folds left
+    snapped: dict = None              # the last step's pairs, pins and rounds (snap.py); None: not run
     outcome: dict = None              # how it ended: folds left, seen-skin RMS, marker RMS, warnings, ok
     anatomy_support: float = 0.0      # map_points uses the levels with at least this support, m
     backend: str = "numpy"            # the spatial backend of the fit (AdaptOptions.backend), for the transfer
@@ -184,6 +192,7 @@ class AdaptResult:
             "flagged_fdps": self.flagged,
             "dropped_fdps": self.dropped,
             "unfolded": self.unfolded,
+            "snapped": self.snapped,
             "outcome": self.outcome,
             "units": "E_d, E_m, E in mm^2 of the template frame (paper eq 22-24); *_mm in mm",
         }

@@ -29,6 +29,7 @@ from .options import FACE_REGIONS, SCANNER_VISIBLE_PARTS, AdaptOptions, AdaptRes
 from .outcome import fit_outcome
 from .pairs import current_query, curvature_pairs, face_box, feature_mesh_pairs
 from .scan import ScanSide, start_spatial
+from .snap import snap_to_scan
 
 
 def adapt(tpl: Template, scan_verts: np.ndarray, scan_tris: np.ndarray, scan_fdps: dict[str, np.ndarray],
@@ -124,16 +125,16 @@ def _adapt(tpl, scan_verts, scan_tris, scan_fdps, options, markers, progress, ca
         elif options.stop_at_minimum:
             break
 
-    # 4. where the scan has no room for the template's detail (closed eyes under open lids) the fit
-    # folds a few triangles over: the displacement around them was relaxed until none is folded
-    # (Unfolding, at every level, so that the level kept is the best as delivered)
-    t0 = time.perf_counter()
-    verts, unfolded = best_verts, best_unfolded
+    # 4. the folds were relaxed at every level (Unfolding), so the level kept is the best as delivered;
+    # 5. then the skin is laid onto the scan where the scan shows it (snap.py; HeadAdapt, not the paper)
+    t0 = time.perf_counter()       # (a fit far from the scan is delivered, and named, as the levels left it)
+    hold = options.snap_reach > 0 and levels[best].E_d_rms_mm < options.bad_fit_rms_mm
+    verts, snapped = snap_to_scan(fit, best_verts) if hold else (best_verts, None)
+    t_snap, unfolded, t0 = time.perf_counter() - t0, best_unfolded, time.perf_counter()
     # the distances reported: exact closest points on the scan, by the paper's compatibility rule
     de = fit.distance_error(verts, exact=True)
     best_dist = np.where(de.matched, de.dist, np.nan)
-    left = unfolded["folded_left"]
-    face = tpl.region_mask(*FACE_REGIONS)
+    left, face = unfolded["folded_left"], tpl.region_mask(*FACE_REGIONS)
     outcome = fit_outcome(best_dist, face, left, judge.marker_rms_mm(best_funcs), flagged, options,
                           cal_info["handedness"]["notes"])
     say(1.0, f"done: best level {best}")
@@ -141,12 +142,12 @@ def _adapt(tpl, scan_verts, scan_tris, scan_fdps, options, markers, progress, ca
     # before level 0) apart
     prep = fit.scan.seconds["build"] + fit.scan.seconds["curvature"] - spent
     stages = {"calibrate": t_cal - prep, "prepare": prep, **{f"level_{lv.level}": lv.seconds for lv in levels},
-              "unfold": unfolding.seconds + time.perf_counter() - t0}
+              "snap": t_snap, "unfold": unfolding.seconds + time.perf_counter() - t0}
     return AdaptResult(verts=verts, verts_scan=sim.inverse().apply(verts), similarity=sim, levels=levels,
                        best_level=best, functions=best_funcs, flagged=flagged, dropped=dropped,
                        calibration_info=cal_info, seconds=time.perf_counter() - t_start, distances=best_dist,
-                       scan=fit.scan, unfolded=unfolded, outcome=outcome, anatomy_support=options.anatomy_support,
-                       backend=options.backend, stages=stages)
+                       scan=fit.scan, unfolded=unfolded, snapped=snapped, outcome=outcome,
+                       anatomy_support=options.anatomy_support, backend=options.backend, stages=stages)
 
 
 def calibrate(tpl: Template, scan_verts: np.ndarray, scan_tris: np.ndarray, scan_fdps: dict[str, np.ndarray],

@@ -26,23 +26,37 @@ def _bump(tpl, skin, at, to, rings=3):
     return skin + d
 
 
+def _exit(inside, points, way, most):
+    """How far along `way` (k,3) each point first lies outside the bone (bisection within `most`)."""
+    lo, hi = np.zeros(len(points)), np.full(len(points), most)
+    for _ in range(12):
+        mid = 0.5 * (lo + hi)
+        out = inside(points + mid[:, None] * way) <= 0.5
+        hi, lo = np.where(out, mid, hi), np.where(out, lo, mid)
+    return hi
+
+
 def _lift_near(tpl, skin, bad, inside, query, most, clearance):
     """The visible skin vertices `bad` inside the bone moved out where that is short (within `most`):
-    along their own outward normal, else through the bone's nearest face. Returns (skin (n,3), the
+    along their own outward normal, else back along it, else through the bone's nearest face. Returns (skin (n,3), the
     vertices moved, the rest, their nearest outside points (k,3) through the bone's faces, and how
     far those are (k,))."""
     from ..mesh.geometry import face_normals, vertex_normals
 
     normals = vertex_normals(skin, tpl.skin.tris)[bad]
-    lo, hi = np.zeros(len(bad)), np.full(len(bad), most)
-    out_at_most = inside(skin[bad] + most * normals) <= 0.5
-    for _ in range(12):                       # bisection to the bone's surface along the normal
-        mid = 0.5 * (lo + hi)
-        out = inside(skin[bad] + mid[:, None] * normals) <= 0.5
-        hi, lo = np.where(out, mid, hi), np.where(out, lo, mid)
     skin = skin.copy()
+    # out along the outward normal; else back along it, where the bone's edge is that near (a lid over
+    # the orbit's opening, inside by the winding number of the skull's open rim: the CT's closed left lid
+    # lay 0.11 mm in, and out through neither the normal nor the rim's nearest face)
+    way, step, out_at_most = normals.copy(), np.full(len(bad), np.inf), np.zeros(len(bad), bool)
+    for sign in (1.0, -1.0):
+        at = ~out_at_most & (inside(skin[bad] + sign * most * normals) <= 0.5)
+        if sign < 0:
+            at &= inside(skin[bad] - 0.5 * most * normals) <= 0.5      # not through bone and out again
+        hi = _exit(inside, skin[bad][at], sign * normals[at], most)
+        way[at], step[at], out_at_most[at] = sign * normals[at], hi, True
     move, rest = bad[out_at_most], bad[~out_at_most]
-    skin[move] += (np.minimum(hi[out_at_most] + clearance, most))[:, None] * normals[out_at_most]
+    skin[move] += (np.minimum(step[out_at_most] + clearance, most))[:, None] * way[out_at_most]
     if not len(rest):
         return skin, move, rest, np.zeros((0, 3)), np.zeros(0)
     near, face, dist = query.closest_points(skin[rest])          # out through the bone's nearest face
@@ -57,8 +71,8 @@ def lift_visible_skin(tpl, skin, cranium, mandible, most=0.0005, clearance=0.000
                       farthest=0.002):
     """The last guarantee of the transfer: a visible skin vertex still inside the bone after the bone
     was cleared (clear_visible_skin freezes bone by a pocket: a lid at the orbit's opening) steps out
-    along its own outward normal, at most `most` (0.5 mm: a sliver of bone rim, not a fit gone wrong),
-    to `clearance` outside; where that way is longer (bone folded round the point: a statue's lid on
+    along its own outward normal (or back along it), at most `most` (0.5 mm: a sliver of bone rim, not
+    a fit gone wrong), to `clearance` outside; where that way is longer (bone folded round the point: a statue's lid on
     the orbit's rim), through the bone's nearest face if that is within `most`, else within `farthest`
     (2 mm) with the skin round it taken along, if no skin triangle turns over for it and fewer visible
     vertices stay inside (the neighbours it drags back in lifted again first): Nefertiti's carved left
