@@ -267,8 +267,8 @@ def test_unfolding_relaxes_a_level_s_folds_as_it_will_be_delivered(tpl, case):
 def test_the_snap_lays_the_skin_onto_the_scan_and_follows_neighbours_over_a_hole(tpl, case):
     """snap.py, the last step: a skin 1 mm in front of the scan (the truth moved forward: folded nowhere,
     as a fit the levels leave; 1 mm along the normals already turns 42 of the template's smallest lid
-    and lip triangles over) is laid onto the scan, moved no farther than snap_reach and folded nowhere;
-    where the scan has a hole (the left cheek's triangles cut out) the skin has no pair and follows its
+    and lip triangles over) is laid onto the scan, moved no farther than snap_reach and folded nowhere,
+    the lids' margins kept where they were; where the scan has a hole (the left cheek's triangles cut out) the skin has no pair and follows its
     neighbours."""
     scan_v, scan_t, truth, _ = case
     cheek = tpl.region_mask("cheek_l")
@@ -276,7 +276,10 @@ def test_the_snap_lays_the_skin_onto_the_scan_and_follows_neighbours_over_a_hole
     options = adapt.AdaptOptions()
     fit = Fit(tpl, ScanSide(scan_v, holed, options), options, float(np.ptp(tpl.skin.verts[:, 0])) / 10)
     off = truth + np.array([0.0, -0.001, 0.0])          # the face looks toward -y
-    face = _face(tpl) & ~cheek
+    lids = tpl.region_mask(*options.snap_keep)          # the lids' margins stay (the blink is made on them)
+    for _ in range(options.snap_keep_rings):
+        lids |= (fit.ring @ lids) > 0
+    face = _face(tpl) & ~cheek & ~lids
     before = fit.scan.query.closest_points(off[face])[2]
     assert np.median(before) * MM > 0.6
     out, info = snap_to_scan(fit, off)
@@ -286,6 +289,8 @@ def test_the_snap_lays_the_skin_onto_the_scan_and_follows_neighbours_over_a_hole
     assert _corr_mm(tpl, out, truth) < 0.8 * _corr_mm(tpl, off, truth)     # its part along the normals
     assert np.linalg.norm(out - off, axis=1).max() <= options.snap_reach + 1e-9
     assert len(fit.folds(out)) == 0 and info["snapped"] and info["paired"] > 1000
+    held = np.linalg.norm(out - off, axis=1)[lids] * MM      # held by weights: a little pulled along
+    assert lids.sum() > 200 and np.percentile(held, 90) < 0.1, np.percentile(held, [50, 90, 100])
     # over the hole: no pair, yet the skin came in with the face round it (by the membrane)
     edges = (fit.ring != 0).astype(float)
     inner = cheek & ((edges @ (edges @ (~cheek).astype(float))) == 0)      # two rings in from its border

@@ -39,6 +39,12 @@ def snap_to_scan(fit: Fit, verts: np.ndarray) -> tuple[np.ndarray, dict]:
     w[use[ok]] = 1.0
     target = np.zeros_like(verts)
     target[use[ok]] = point[ok] - verts[use[ok]]
+    # the lids round the eyes stay where the levels left them (AdaptOptions.snap_keep): the blink is
+    # simulated on them, and laid onto a scan's lids it left more of the eyeball showing
+    keep = fit.tpl.region_mask(*o.snap_keep)
+    for _ in range(o.snap_keep_rings):
+        keep |= (fit.ring @ keep) > 0
+    w[keep], target[keep] = 1.0, 0.0
     # the skin's graph Laplacian (a membrane: a vertex with no pair takes its neighbours' mean)
     graph = (fit.ring != 0).astype(float)
     bend = sparse.diags(np.asarray(graph.sum(axis=1)).ravel()) - graph
