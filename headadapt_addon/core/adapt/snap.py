@@ -1,12 +1,13 @@
 """The last step after the levels (HeadAdapt, not the paper): the skin laid onto the scan where the scan
 shows it. The levels are smooth maps of the template; the finest one's centres lie 2 mm apart and
 its smoothness term and robust weights leave the skin a few tenths of a millimetre off the scan
-(lids, lips, the nose's wings). Each seen vertex is paired along its normal with the scan, as the
+(lips, the nose's wings, cheeks). Each seen vertex is paired along its normal with the scan, as the
 fine levels pair it, and the skin takes the displacement that reaches those points with the least
 stretch (a membrane over the skin's edges); the vertices with no pair (holes, the lip seam, the skin
 where the scan has no room for the template's detail) follow their neighbours, and round a triangle
-the snap would fold the skin stays where the levels left it. It moves the skin only, by at most
-snap_reach: bone, eyes and muscles follow the levels (AdaptResult.map_points)."""
+the snap would fold the skin stays where the levels left it, as do the lids' margins (snap_keep:
+the blink is simulated on them). It moves the skin only, by at most snap_reach (each move is a
+weighted mean of the pairs' own): bone, eyes and muscles follow the levels (AdaptResult.map_points)."""
 
 from __future__ import annotations
 
@@ -21,7 +22,7 @@ from .levels import factor_spd
 
 def snap_to_scan(fit: Fit, verts: np.ndarray) -> tuple[np.ndarray, dict]:
     """(the skin verts (n,3) laid onto the scan, {"paired": vertices paired with the scan, "pinned":
-    vertices held where the levels left them, "rounds": solves again, "moved_rms_mm": how far the skin
+    vertices held round what it would fold, "rounds": solves again, "moved_rms_mm": how far the skin
     moved}); template frame. `verts` must fold nowhere (the fit after pipeline.Unfolding). Round any
     triangle the snap would fold, two rings of vertices are pinned to `verts` and the snap solved
     again, the pins widening by two rings each round (AdaptOptions.snap_fold_rounds); if a fold still
