@@ -86,15 +86,21 @@ def surface_pairs(fit: Fit, reach: float, along_normal: bool = False, mask: np.n
     normals = geometry.vertex_normals(cur, fit.tris)
     use = np.flatnonzero((fit.pair_w > 0) & ~fit.near_seam & ~fit.quiet & (True if mask is None else mask))
     if along_normal:
-        hit = fit.scan.query.ray_cast(cur[use], normals[use], reach)
-        f = np.where(hit.hit, hit.face, 0)
-        q, n, d, border = np.nan_to_num(hit.point), fit.scan.face_normals[f], np.abs(np.nan_to_num(hit.t, nan=np.inf)), \
-            fit.scan.boundary_faces[f] | ~hit.hit
+        q, n, d, border = normal_hits(fit.scan, cur[use], normals[use], reach)
     else:
         q, n, d, border = fit.scan.nearest_on_plane(cur[use], exact_if_coarse=exact)
     ok = (d < reach) & ~border & (np.einsum("ij,ij->i", normals[use], n) > 0.5)
     w = fit.pair_w[use] / (1.0 + (np.minimum(d, reach) / (fit.options.robust_scale * reach)) ** 2)
     return Pairs(fit.V[use[ok]], q[ok], w[ok], use[ok])
+
+
+def normal_hits(scan: ScanSide, points: np.ndarray, normals: np.ndarray, reach: float):
+    """(hit points (k,3; 0 for a miss), the scan's face normals there, how far (inf for a miss), on a
+    hole's border or missed) of rays from points along their normals, both ways, within reach."""
+    hit = scan.query.ray_cast(points, normals, reach)
+    f = np.where(hit.hit, hit.face, 0)
+    return (np.nan_to_num(hit.point), scan.face_normals[f], np.abs(np.nan_to_num(hit.t, nan=np.inf)),
+            scan.boundary_faces[f] | ~hit.hit)
 
 
 def face_box(scan: ScanSide, q_fdp: dict[str, np.ndarray]) -> np.ndarray:

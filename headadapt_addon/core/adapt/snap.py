@@ -18,6 +18,7 @@ from ..mesh import geometry
 from ..tol import MM
 from .fit import Fit
 from .levels import factor_spd
+from .pairs import normal_hits
 
 
 def snap_to_scan(fit: Fit, verts: np.ndarray) -> tuple[np.ndarray, dict]:
@@ -31,20 +32,15 @@ def snap_to_scan(fit: Fit, verts: np.ndarray) -> tuple[np.ndarray, dict]:
     n = len(verts)
     normals = geometry.vertex_normals(verts, fit.tris)
     use = np.flatnonzero((fit.pair_w > 0) & ~fit.near_seam)
-    hit = fit.scan.query.ray_cast(verts[use], normals[use], o.snap_reach)
-    face = np.where(hit.hit, hit.face, 0)
-    point, normal = hit.point, fit.scan.face_normals[face]
-    ok = hit.hit & ~fit.scan.boundary_faces[face]
-    ok &= np.einsum("ij,ij->i", normals[use], normal) > 0.5
+    point, normal, _, missed = normal_hits(fit.scan, verts[use], normals[use], o.snap_reach)
+    ok = ~missed & (np.einsum("ij,ij->i", normals[use], normal) > 0.5)
     w = np.zeros(n)
     w[use[ok]] = 1.0
     target = np.zeros_like(verts)
     target[use[ok]] = point[ok] - verts[use[ok]]
     # the lids round the eyes stay where the levels left them (AdaptOptions.snap_keep): the blink is
     # simulated on them, and laid onto a scan's lids it left more of the eyeball showing
-    keep = fit.tpl.region_mask(*o.snap_keep)
-    for _ in range(o.snap_keep_rings):
-        keep |= (fit.ring @ keep) > 0
+    keep = _grow(fit, fit.tpl.region_mask(*o.snap_keep), o.snap_keep_rings)
     w[keep], target[keep] = 1.0, 0.0
     # the skin's graph Laplacian (a membrane: a vertex with no pair takes its neighbours' mean)
     graph = (fit.ring != 0).astype(float)
@@ -56,13 +52,10 @@ def snap_to_scan(fit: Fit, verts: np.ndarray) -> tuple[np.ndarray, dict]:
         # round a fold the skin stays where the levels left it (folded nowhere): its pairs become pins
         # there, over two rings, widening while a fold resists
         rounds += 1
-        around = np.zeros(n, bool)
-        around[fit.tris[folds].ravel()] = True
-        pinned |= around
-        for _ in range(2):
-            pinned |= (fit.ring @ pinned) > 0
-        if (pinned & (w == 0)).any():       # new weights on the diagonal
-            system = system + sparse.diags(np.where(pinned & (w == 0), 1.0, 0.0), format="csc")
+        pinned[fit.tris[folds].ravel()] = True
+        pinned = _grow(fit, pinned, 2)
+        if (new := pinned & (w == 0)).any():       # new weights on the diagonal
+            system = system + sparse.diags(new.astype(float), format="csc")
             factor = factor_spd(system)
         w[pinned], target[pinned] = 1.0, 0.0
         moved = verts + factor.solve(w[:, None] * target)
@@ -73,3 +66,8 @@ def snap_to_scan(fit: Fit, verts: np.ndarray) -> tuple[np.ndarray, dict]:
                    "moved_rms_mm": float(np.sqrt(np.mean(step ** 2))) * MM, "snapped": moved is not verts}
 
 
+def _grow(fit, mask, rings):
+    """The vertex mask widened by `rings` rings of the skin's edges."""
+    for _ in range(rings):
+        mask = (fit.ring @ mask) > 0
+    return mask
