@@ -78,9 +78,19 @@ def fit_level(fit: Fit, clicks: Pairs, k: int, fixed: Pairs | None = None,
         fit.functions = below
         return csrbf_level(fit, pairs, sigma, stiffness)
 
-    for _ in range(o.icp_iterations if rounds is None else rounds):
-        pairs = surface_pairs(fit, fit.reach(k), k >= o.rays_from_level) + fixed + soft
+    rays = k >= o.rays_from_level
+    # closest points slide the skin along the scan a little each round: such a level goes on until the skin
+    # settles (icp_settle); the rays' levels do not slide it, and the finest of them (the dearest) take fewer
+    least = o.fine_icp_iterations if k >= o.fine_from_level else o.icp_iterations
+    most = rounds if rounds is not None else least if rays else max(o.icp_max_rounds, least)
+    settled = (fit.pair_w > 0) if rounds is None and not rays else None
+    for i in range(most):
+        before = None if settled is None else fit.current()[settled]
+        pairs = surface_pairs(fit, fit.reach(k), rays) + fixed + soft
         fit.functions = below + [refit(pairs)]
+        if i + 1 >= least and before is not None and \
+                math.sqrt(np.mean(np.sum((fit.current()[settled] - before) ** 2, axis=1))) < o.icp_settle:
+            break
     if rounds is not None:
         return pairs, sigma
     # where the scan has no room for the template's detail (closed or carved eyes, a statue's ears)

@@ -75,7 +75,15 @@ class AdaptOptions:
     affine_ridge: float = 1e-3          # how firmly the affine map's linear part is held to the identity
     rays_from_level: int = 2            # from this level on, pairs along the template's normal (sec 4.1)
     fold_rounds: int = 2                # refits of a level without pairs around the triangles it folded
-    icp_iterations: int = 3             # closest-point pairing and refit rounds per level
+    icp_iterations: int = 3             # pairing and refit rounds per level (the least, for closest-point levels)
+    icp_settle: float = 5e-5            # a closest-point level (below rays_from_level) goes on past them until a
+                                        # round moves the skin less than this RMS, m: its pairs slide the skin
+                                        # a little each round, and the third round still moved it 0.2 to 0.4 mm
+                                        # (tuning heads 0-35: correspondence -0.041 mm, 52 of 72 cases better,
+                                        # with fine_icp_iterations; docs/MEASUREMENTS.md)
+    icp_max_rounds: int = 16            # ... but no more rounds than this
+    fine_icp_iterations: int = 2        # rounds of the levels from fine_from_level on (rays, which do not
+    fine_from_level: int = 3            # slide the skin: the third round changed little, and these levels cost most)
     stiffness: float = 10.0             # smoothness of a level: ridge on its CSRBF coefficients, relative
                                         # to the data weight a centre carries (nricp's stiffness, in effect)
     stiffness_decay: float = 0.2        # the stiffness per level falls by this factor
