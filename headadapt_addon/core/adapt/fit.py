@@ -108,6 +108,13 @@ class Fit:
         """How far a closest-point pair may reach at level k (halving per level), m."""
         return max(self.options.reach_factor * self.threshold / 2 ** (k - 1), self.options.min_reach)
 
+    def grown(self, mask, rings=1):
+        """The skin vertices (n,) bools within `rings` edge rings of the vertex mask (self.ring holds each
+        vertex with its neighbours)."""
+        for _ in range(rings):
+            mask = (self.ring @ mask) > 0
+        return mask
+
     def displacement(self, x, functions=None):
         fs = self.functions if functions is None else functions
         return sum((f(x) for f in fs), np.zeros_like(np.asarray(x, dtype=np.float64)))

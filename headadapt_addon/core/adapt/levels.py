@@ -101,7 +101,7 @@ def fit_level(fit: Fit, clicks: Pairs, k: int, fixed: Pairs | None = None,
             break
         around = np.zeros(len(fit.V), bool)
         around[fit.tris[folds].ravel()] = True
-        fit.quiet |= (fit.ring @ around) > 0
+        fit.quiet |= fit.grown(around)
         pairs = surface_pairs(fit, fit.reach(k), k >= o.rays_from_level) + fixed + soft
         fit.functions = below + [refit(pairs)]
     return pairs, sigma

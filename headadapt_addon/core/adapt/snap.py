@@ -40,7 +40,7 @@ def snap_to_scan(fit: Fit, verts: np.ndarray) -> tuple[np.ndarray, dict]:
     target[use[ok]] = point[ok] - verts[use[ok]]
     # the lids round the eyes stay where the levels left them (AdaptOptions.snap_keep): the blink is
     # simulated on them, and laid onto a scan's lids it left more of the eyeball showing
-    keep = _grow(fit, fit.tpl.region_mask(*o.snap_keep), o.snap_keep_rings)
+    keep = fit.grown(fit.tpl.region_mask(*o.snap_keep), o.snap_keep_rings)
     w[keep], target[keep] = 1.0, 0.0
     # the skin's graph Laplacian (a membrane: a vertex with no pair takes its neighbours' mean)
     graph = (fit.ring != 0).astype(float)
@@ -53,7 +53,7 @@ def snap_to_scan(fit: Fit, verts: np.ndarray) -> tuple[np.ndarray, dict]:
         # there, over two rings, widening while a fold resists
         rounds += 1
         pinned[fit.tris[folds].ravel()] = True
-        pinned = _grow(fit, pinned, 2)
+        pinned = fit.grown(pinned, 2)
         if (new := pinned & (w == 0)).any():       # new weights on the diagonal
             system = system + sparse.diags(new.astype(float), format="csc")
             factor = factor_spd(system)
@@ -64,10 +64,3 @@ def snap_to_scan(fit: Fit, verts: np.ndarray) -> tuple[np.ndarray, dict]:
     step = np.linalg.norm(moved - verts, axis=1)
     return moved, {"paired": int(np.sum(ok)), "pinned": int(pinned.sum()), "rounds": rounds,
                    "moved_rms_mm": float(np.sqrt(np.mean(step ** 2))) * MM, "snapped": moved is not verts}
-
-
-def _grow(fit, mask, rings):
-    """The vertex mask widened by `rings` rings of the skin's edges."""
-    for _ in range(rings):
-        mask = (fit.ring @ mask) > 0
-    return mask
