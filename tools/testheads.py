@@ -200,6 +200,32 @@ def _morph(rng, n_targets, identity=1.0):
     return disp, used
 
 
+def articulate_neck(tpl, parts, rng, std_deg):
+    """parts with the head turned on its neck: people hold their heads at their own angle to the neck
+    in a scanner, which no identity target does. A nod (about the ear-to-ear axis) of std_deg, a turn
+    and a tilt of half that, about a pivot in the neck's upper part (its 70th height percentile, the
+    spine's depth); the head above the neck rigidly, the neck's skin blended from the pivot's height
+    (all of the turn) down to its cut (none), its weight smoothed along the skin."""
+    pitch, yaw, roll = np.radians(rng.normal(0.0, 1.0, 3) * np.array([1.0, 0.5, 0.5]) * std_deg)
+    rx = np.array([[1, 0, 0], [0, np.cos(pitch), -np.sin(pitch)], [0, np.sin(pitch), np.cos(pitch)]])
+    rz = np.array([[np.cos(yaw), -np.sin(yaw), 0], [np.sin(yaw), np.cos(yaw), 0], [0, 0, 1]])
+    ry = np.array([[np.cos(roll), 0, np.sin(roll)], [0, 1, 0], [-np.sin(roll), 0, np.cos(roll)]])
+    rot = rz @ ry @ rx
+    skin = parts["skin"]
+    neck = _region_mask(tpl, "neck")
+    low, top = np.percentile(skin[neck, 2], [2, 70])
+    pivot = np.array([0.0, float(np.mean(skin[neck, 1])), top])
+    w = np.where(neck, np.clip((skin[:, 2] - low) / (top - low), 0.0, 1.0), 1.0)
+    w = np.where(neck, w * w * (3 - 2 * w), 1.0)
+    mean = geometry.neighbour_mean(tpl.skin.tris, len(skin))
+    for _ in range(80):         # smoothed along the skin, the head and the cut held (fewer steps, or the
+                                # pivot at the neck's top, folded the throat on a nod: 24 triangles on 8 heads)
+        w = np.where(neck & (skin[:, 2] > low), mean @ w, w)
+    out = {name: pivot + (v - pivot) @ rot.T for name, v in parts.items()}
+    out["skin"] = skin + w[:, None] * (out["skin"] - skin)
+    return out
+
+
 def _rotation(rng, pose):
     if not pose:
         return np.eye(3)
@@ -461,14 +487,17 @@ def _place_holes(rng, tpl, skin, seen_v, avoid):
 
 
 def make_head(seed, *, style="legacy", n_targets=None, subdiv=2, decimate=0.6, holes=None, noise_mm=None,
-              pose=True, unit=None, click_noise_mm=None, line_noise_mm=3.0, identity=1.0, click_seed=None):
+              pose=True, unit=None, click_noise_mm=None, line_noise_mm=3.0, identity=1.0, click_seed=None,
+              neck_tilt=0.0):
     """A TestHead for `seed` (deterministic per seed and arguments): see the module docstring.
 
     style "scan": the scan-like heads. None picks at random per head: n_targets (12-20 modifier
     targets), noise_mm (0.1-0.5 mm std along the normal), unit ("mm" or "m"). holes: True (the
     default) or False. click_noise_mm (default 2): people's disagreement, std per tangent axis;
     line_noise_mm: along the lid and lip lines. identity scales every identity target. click_seed:
-    another draw of the people's clicks on the same head (None: the head's own).
+    another draw of the people's clicks on the same head (None: the head's own). neck_tilt: the
+    head turned on its neck as a person sits for a scan (articulate_neck), its nod's std in degrees
+    (0: as the identity left it, every head before this option the same to the bit).
 
     style "legacy" (the default, bit for bit the first generator, which the suite's adaptation
     tests are tuned on): region-label cut, `holes` (2) small holes, 0.2 mm noise, every FDP
@@ -481,7 +510,7 @@ def make_head(seed, *, style="legacy", n_targets=None, subdiv=2, decimate=0.6, h
     if style != "scan":
         raise ValueError(f"style must be 'scan' or 'legacy', got {style!r}")
     geo = _scan_geometry(seed, n_targets, subdiv, decimate, True if holes is None else bool(holes), noise_mm, pose,
-                         unit, identity)
+                         unit, identity, float(neck_tilt))
     click_noise_mm = 2.0 if click_noise_mm is None else float(click_noise_mm)
     tpl = _template()
     fdp_refs = tpl.meta["fdps"]
@@ -530,7 +559,7 @@ def make_head(seed, *, style="legacy", n_targets=None, subdiv=2, decimate=0.6, h
 
 
 @functools.lru_cache(maxsize=2)
-def _scan_geometry(seed, n_targets, subdiv, decimate, holes, noise_mm, pose, unit, identity):
+def _scan_geometry(seed, n_targets, subdiv, decimate, holes, noise_mm, pose, unit, identity, neck_tilt=0.0):
     """Everything of a scan-like head but the clicks (template frame, metres; cached: treat as read-only)."""
     from scipy.spatial import cKDTree
 
@@ -543,6 +572,9 @@ def _scan_geometry(seed, n_targets, subdiv, decimate, holes, noise_mm, pose, uni
     unit = draws[2] if unit is None else unit
     disp_hm08, used = _morph(rng, n_targets, identity)
     true_parts = {name: part.verts + disp_hm08[part.hm08] for name, part in tpl.parts.items()}
+    if neck_tilt:
+        true_parts, used = articulate_neck(tpl, true_parts, np.random.default_rng([seed, 7]), neck_tilt), \
+            used + [("neck_tilt_std_deg", neck_tilt)]
     skin = true_parts["skin"]
     fdp_refs = tpl.meta["fdps"]
     true_fdps = {k: np.asarray(r["bary"]) @ true_parts[r["part"]][tpl.parts[r["part"]].tris[r["face"]]]

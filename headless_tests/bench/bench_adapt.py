@@ -370,8 +370,9 @@ def big():
 
 
 def _identity(args):
-    """make_head's identity arguments asked for on the command line (--identity, --targets), if any."""
-    given = {"identity": getattr(args, "identity", None), "n_targets": getattr(args, "targets", None)}
+    """make_head's head arguments asked for on the command line (--identity, --targets, --neck-tilt), if any."""
+    given = {"identity": getattr(args, "identity", None), "n_targets": getattr(args, "targets", None),
+             "neck_tilt": getattr(args, "neck_tilt", None)}
     return {k: v for k, v in given.items() if v is not None}
 
 
@@ -393,6 +394,9 @@ def main(argv=None):
     parser.add_argument("--targets", type=int, default=None,
                         help="modifier targets per head (scan style; default 12-20 at random, 0: only race, "
                              "gender, age and one body target)")
+    parser.add_argument("--neck-tilt", type=float, default=None,
+                        help="scan style: each head turned on its neck, its nod's std in degrees (testheads."
+                             "articulate_neck; default none)")
     args = parser.parse_args(argv)
     if args.big:
         big()

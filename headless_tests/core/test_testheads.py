@@ -166,3 +166,22 @@ def test_faces_differ_from_the_template_by_several_mm(tpl, testheads, heads):
         rms.append(np.sqrt(np.mean(np.sum((sim.apply(v[face]) - tpl.skin.verts[face]) ** 2, axis=1))) / MM)
     assert min(rms) > 3.0, rms
     assert {h.meta["unit"] for h in heads} == {"mm", "m"}      # both units come up (seeds 2 and 5)
+
+
+def test_a_head_turned_on_its_neck(tpl, testheads, heads):
+    """neck_tilt turns the head on its neck as a person sits in a scanner: the head moves rigidly,
+    the neck's cut stays, the skin between bends without folding."""
+    from headadapt_addon.core.mesh import geometry
+
+    turned = testheads.make_head(2, style="scan", neck_tilt=10.0)
+    before, after = _unplace(heads[0], heads[0].true_template), _unplace(turned, turned.true_template)
+    face = testheads.face_mask(tpl)
+    rigid = calibration.umeyama(before[face], after[face])
+    assert np.abs(rigid.apply(before[face]) - after[face]).max() < 1e-9        # the head: a rigid move
+    angle = np.degrees(np.arccos(np.clip((np.trace(rigid.rotation) - 1) / 2, -1, 1)))
+    assert angle > 1.0, angle                                                   # ... that turned it
+    neck = _region(tpl, "neck")
+    cut = neck & (before[:, 2] <= np.percentile(before[neck, 2], 2))
+    assert np.abs(after[cut] - before[cut]).max() < 1e-9                       # the neck's cut stays
+    assert len(geometry.folded(before, after, tpl.skin.tris)) == 0
+    assert ("neck_tilt_std_deg", 10.0) in turned.meta["targets"]
