@@ -5,6 +5,7 @@
     ./ha bench adapt --oracle          # the floor: maps that know the truth, and HeadAdapt given part of it
     ./ha bench adapt --seeds 0-3 --identity 0 --targets 0   # heads whose truth is the template itself
     ./ha bench adapt --seeds 0,3 --regions   # where the error lies: along the skin by region, level by level
+    ./ha bench adapt --seeds 500-515 --neck-tilt 8   # the heads turned on their necks (a nod of 8 deg std)
 
 Seeds 100-107 are the REPORTING set (the default): figures quoted anywhere come from them. Seeds
 0-49 may be used for tuning (parameters, thresholds, ideas); never tune on 100-107, or the figures
