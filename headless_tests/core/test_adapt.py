@@ -256,7 +256,7 @@ def fringe_scan(folder, wrong_click=True):
     return folder / "fringe.obj", folder / "fringe.json"
 
 
-OUTCOME_FIELDS = {"folds_left", "seen_rms_mm", "seen_vertices", "marker_rms_mm", "warnings", "ok"}
+OUTCOME_FIELDS = {"folds_left", "seen_rms_mm", "seen_vertices", "marker_rms_mm", "scan_beyond_pct", "warnings", "ok"}
 
 
 @pytest.mark.slow
@@ -275,7 +275,8 @@ def test_batch_states_the_outcome_and_exits_0_on_the_sample(tmp_path):
     line = next(s for s in proc.stdout.splitlines() if "fit ok" in s)
     assert (f"{out['folds_left']} folded triangles left" in line
             and f"seen-skin RMS {out['seen_rms_mm']:.2f} mm over {out['seen_vertices']} vertices" in line
-            and f"marker RMS {out['marker_rms_mm']:.2f} mm" in line), line
+            and f"marker RMS {out['marker_rms_mm']:.2f} mm" in line
+            and f"scan not reached {out['scan_beyond_pct']:.1f}%" in line), line
     assert "headadapt: warning:" not in proc.stderr
 
 

@@ -26,7 +26,7 @@ from .fit import Fit, Pairs, prefetch
 from .level0 import feature_mesh, level_zero
 from .levels import fit_level
 from .options import FACE_REGIONS, SCANNER_VISIBLE_PARTS, AdaptOptions, AdaptResult, Level
-from .outcome import fit_outcome
+from .outcome import fit_outcome, scan_beyond
 from .pairs import current_query, curvature_pairs, face_box, feature_mesh_pairs
 from .scan import ScanSide, start_spatial
 from .snap import snap_to_scan
@@ -136,7 +136,7 @@ def _adapt(tpl, scan_verts, scan_tris, scan_fdps, options, markers, progress, ca
     best_dist = np.where(de.matched, de.dist, np.nan)
     left, face = unfolded["folded_left"], tpl.region_mask(*FACE_REGIONS)
     outcome = fit_outcome(best_dist, face, left, judge.marker_rms_mm(best_funcs), flagged, options,
-                          cal_info["handedness"]["notes"])
+                          cal_info["handedness"]["notes"], scan_beyond(fit, verts))
     say(1.0, f"done: best level {best}")
     # the scan's preparation (ScanSide's normals and border, its spatial tree's wait, the curvature: all
     # before level 0) apart
