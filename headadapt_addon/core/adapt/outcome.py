@@ -6,11 +6,8 @@ warnings, ok."""
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial import cKDTree
 
-from ..mesh import geometry, spatial
 from ..tol import MM
-from .options import FACE_REGIONS
 
 BEYOND_SAMPLE = 8000          # scan points looked at by scan_beyond (every k-th): a share, to about 0.2%
 
@@ -22,6 +19,11 @@ def scan_beyond(fit, verts):
     the scan, and those are not). A point counts by the skin's nearest vertex (its normal within 60
     degrees of the point's) and, when that vertex's tangent plane puts it half that far out, by its
     exact closest point on the skin (outside, on a face or ear triangle, the normals agreeing)."""
+    from scipy.spatial import cKDTree  # here: enabling the add-on imports this module, and no scipy
+
+    from ..mesh import geometry, spatial
+    from .options import FACE_REGIONS
+
     o, tris, step = fit.options, fit.tris, max(1, len(fit.scan.verts) // BEYOND_SAMPLE)
     P, N = fit.scan.verts[::step], fit.scan.vertex_normals[::step]
     near = fit.tpl.region_mask(*FACE_REGIONS, "ear_l", "ear_r")
