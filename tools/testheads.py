@@ -206,21 +206,21 @@ def articulate_neck(tpl, parts, rng, std_deg):
     and a tilt of half that, about a pivot in the neck's upper part (its 70th height percentile, the
     spine's depth); the head above the neck rigidly, the neck's skin blended from the pivot's height
     (all of the turn) down to its cut (none), its weight smoothed along the skin."""
-    pitch, yaw, roll = np.radians(rng.normal(0.0, 1.0, 3) * np.array([1.0, 0.5, 0.5]) * std_deg)
-    rx = np.array([[1, 0, 0], [0, np.cos(pitch), -np.sin(pitch)], [0, np.sin(pitch), np.cos(pitch)]])
-    rz = np.array([[np.cos(yaw), -np.sin(yaw), 0], [np.sin(yaw), np.cos(yaw), 0], [0, 0, 1]])
-    ry = np.array([[np.cos(roll), 0, np.sin(roll)], [0, 1, 0], [-np.sin(roll), 0, np.cos(roll)]])
-    rot = rz @ ry @ rx
+    from scipy.spatial.transform import Rotation
+
+    pitch, yaw, roll = rng.normal(0.0, 1.0, 3) * np.array([1.0, 0.5, 0.5]) * std_deg
+    rot = Rotation.from_euler("xyz", [pitch, roll, yaw], degrees=True).as_matrix()   # nod, tilt, turn
     skin = parts["skin"]
     neck = _region_mask(tpl, "neck")
     low, top = np.percentile(skin[neck, 2], [2, 70])
     pivot = np.array([0.0, float(np.mean(skin[neck, 1])), top])
     w = np.where(neck, np.clip((skin[:, 2] - low) / (top - low), 0.0, 1.0), 1.0)
-    w = np.where(neck, w * w * (3 - 2 * w), 1.0)
+    w = w * w * (3 - 2 * w)                                   # smoothstep (the head's 1 stays 1)
     mean = geometry.neighbour_mean(tpl.skin.tris, len(skin))
+    free = neck & (skin[:, 2] > low)
     for _ in range(80):         # smoothed along the skin, the head and the cut held (fewer steps, or the
                                 # pivot at the neck's top, folded the throat on a nod: 24 triangles on 8 heads)
-        w = np.where(neck & (skin[:, 2] > low), mean @ w, w)
+        w = np.where(free, mean @ w, w)
     out = {name: pivot + (v - pivot) @ rot.T for name, v in parts.items()}
     out["skin"] = skin + w[:, None] * (out["skin"] - skin)
     return out

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from headadapt_addon.core.adapt import AdaptOptions, adapt
+from headadapt_addon.core.adapt.options import FACE_REGIONS
 from headadapt_addon.core.adapt.outcome import fit_outcome, scan_beyond
 from headadapt_addon.core.mesh import geometry
 
@@ -27,8 +28,7 @@ def test_scan_beyond_counts_scan_far_outside_the_skin(tpl, push_mm, counted):
     fit, verts = _fit(tpl, scan)
     pct = scan_beyond(fit, verts)
     if counted:
-        near = tpl.region_mask("forehead", "brow_l", "brow_r", "eyelid_l", "eyelid_r", "nose", "cheek_l", "cheek_r",
-                               "upper_lip", "lower_lip", "chin_jaw", "ear_l", "ear_r")
+        near = tpl.region_mask(*FACE_REGIONS, "ear_l", "ear_r")
         share = 100.0 * ears.sum() / near.sum()
         assert 0.5 * share < pct <= share + 1.0, (pct, share)   # the ears' pushed points, about all of them
     else:

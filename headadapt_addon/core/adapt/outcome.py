@@ -36,7 +36,7 @@ def scan_beyond(fit, verts):
     q, f, d = spatial.MeshQuery(verts, tris, backend=o.backend).closest_points(P[cand])
     fn = geometry.face_normals(verts, tris[f])
     out = ((np.einsum("ij,ij->i", P[cand] - q, fn) > 0) & (d > o.beyond_mm / MM)
-           & (np.einsum("ij,ij->i", N[cand], fn) > 0.5) & near[tris[f]].all(axis=1))
+           & (np.einsum("ij,ij->i", N[cand], fn) > 0.5) & geometry.all_corners(near, tris[f]))
     return round(100.0 * int(out.sum()) / max(int(use.sum()), 1), 2)
 
 
