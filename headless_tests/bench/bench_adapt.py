@@ -6,6 +6,9 @@
     ./ha bench adapt --seeds 0-3 --identity 0 --targets 0   # heads whose truth is the template itself
     ./ha bench adapt --seeds 0,3 --regions   # where the error lies: along the skin by region, level by level
     ./ha bench adapt --seeds 500-515 --neck-tilt 8   # the heads turned on their necks (a nod of 8 deg std)
+    ./ha bench adapt --seeds 600-615 --coarse        # a phone's scan: about 4,000 vertices
+    ./ha bench adapt --seeds 600-615 --noise-mm 1    # a noisier scanner (std along the normal, mm)
+    ./ha bench adapt --seeds 600-615 --click-noise-mm 4   # sloppier people (and 1.5x that along lid and lip lines)
 
 Seeds 100-107 are the REPORTING set (the default): figures quoted anywhere come from them. Seeds
 0-49 may be used for tuning (parameters, thresholds, ideas); never tune on 100-107, or the figures
@@ -60,6 +63,7 @@ REPORTING_SEEDS = tuple(range(100, 108))
 TUNING_SEEDS = tuple(range(50))
 METHODS = ("headadapt", "rbf_clicks", "nricp_amberg")
 CLICK_SETS = {"8": mpeg4.CLICKS_8, "11": mpeg4.CLICKS_11}
+COARSE_DECIMATE = 0.3       # --coarse: one subdivision kept at this ratio: about 4,000 vertices, a phone's scan
 
 
 def skin_fdp(tpl, verts, name):
@@ -185,7 +189,7 @@ def synthetic(args):
         print("note: mixing tuning seeds (0-49) with reporting seeds (100-107)")
     for seed in args.seeds:
         t0 = time.perf_counter()
-        head = testheads.make_head(seed, style=args.style, **_identity(args))
+        head = testheads.make_head(seed, style=args.style, **_head_args(args))
         made = time.perf_counter() - t0
         seen = face & head.true_on_scan
         query = spatial.MeshQuery(head.scan_verts, head.scan_tris, backend=testheads.BACKEND)
@@ -270,7 +274,7 @@ def oracle(args):
           f"{'level0(11)':>11s} {'headadapt(11)':>14s}")
     rows = []
     for seed in args.seeds:
-        head = testheads.make_head(seed, style=args.style, **_identity(args))
+        head = testheads.make_head(seed, style=args.style, **_head_args(args))
         seen = face & head.true_on_scan
         query = spatial.MeshQuery(head.scan_verts, head.scan_tris, backend=testheads.BACKEND)
         V, T = tpl.skin.verts, head.true_template
@@ -339,7 +343,7 @@ def regions(args):
     print(f"\n== error along the skin by region, mm of the true head, seen face ==\n{'seed':>4s} {'clk':>3s} "
           f"{'after':>9s} " + " ".join(f"{r:>9s}" for r in REGIONS))
     for seed in args.seeds:
-        head = testheads.make_head(seed, style=args.style, **_identity(args))
+        head = testheads.make_head(seed, style=args.style, **_head_args(args))
         seen = face & head.true_on_scan
         normal = geometry.vertex_normals(head.true_template, tpl.skin.tris)
         for name in args.clicks.split(","):
@@ -370,10 +374,16 @@ def big():
           + ", ".join(f"{lv.level}:{lv.seconds:.2f}s" for lv in res.levels) + ")")
 
 
-def _identity(args):
-    """make_head's head arguments asked for on the command line (--identity, --targets, --neck-tilt), if any."""
+def _head_args(args):
+    """make_head's head arguments asked for on the command line (--identity, --targets, --neck-tilt,
+    --coarse, --noise-mm, --click-noise-mm), if any."""
     given = {"identity": getattr(args, "identity", None), "n_targets": getattr(args, "targets", None),
-             "neck_tilt": getattr(args, "neck_tilt", None)}
+             "neck_tilt": getattr(args, "neck_tilt", None), "noise_mm": getattr(args, "noise_mm", None),
+             "click_noise_mm": getattr(args, "click_noise_mm", None)}
+    if getattr(args, "click_noise_mm", None) is not None:
+        given["line_noise_mm"] = 1.5 * args.click_noise_mm      # as the default 2 and 3 mm
+    if getattr(args, "coarse", False):
+        given.update(subdiv=1, decimate=COARSE_DECIMATE)
     return {k: v for k, v in given.items() if v is not None}
 
 
@@ -398,6 +408,13 @@ def main(argv=None):
     parser.add_argument("--neck-tilt", type=float, default=None,
                         help="scan style: each head turned on its neck, its nod's std in degrees (testheads."
                              "articulate_neck; default none)")
+    parser.add_argument("--coarse", action="store_true",
+                        help="scan style: a coarse scan, about 4,000 vertices (a phone's; default about 31,000)")
+    parser.add_argument("--noise-mm", type=float, default=None,
+                        help="scan style: the scan's noise, std along the normal in mm (default 0.1-0.5 at random)")
+    parser.add_argument("--click-noise-mm", type=float, default=None,
+                        help="scan style: people's disagreement, std per tangent axis in mm (default 2; along "
+                             "the lid and lip lines 1.5x this, default 3)")
     args = parser.parse_args(argv)
     if args.big:
         big()
