@@ -86,6 +86,9 @@ CLICKABLE = 10.0e-3             # an FDP is clicked (where people see it) unless
 # held-out markers: FDPs on the seen face that nobody clicks (their true positions measure a fit)
 MARKER_FDPS = ("4.1", "4.2", "4.3", "4.4", "4.5", "4.6", "9.1", "9.2", "5.3", "5.4", "2.11", "2.12",
                "3.1", "3.2", "3.3", "3.4", "9.12", "8.5", "8.6", "8.7", "8.8", "8.9", "8.10", "11.1")
+LINE_NOISE = 1.5                # people's disagreement along the lid and lip lines, x across them (3 mm to 2)
+# a phone's scan (make_head(**PHONE_SCAN); bench adapt --coarse): one subdivision at this ratio, ~4,000 vertices
+PHONE_SCAN = {"subdiv": 1, "decimate": 0.3}
 # clicks fuzzier along a line: lid points (3.x on the lids) and lip points
 LINE_FDPS = tuple(f"3.{i}" for i in (1, 2, 3, 4, 7, 8, 9, 10, 11, 12, 13, 14)) + \
     tuple(f"2.{i}" for i in range(2, 10)) + tuple(f"8.{i}" for i in range(1, 11))
@@ -487,14 +490,14 @@ def _place_holes(rng, tpl, skin, seen_v, avoid):
 
 
 def make_head(seed, *, style="legacy", n_targets=None, subdiv=2, decimate=0.6, holes=None, noise_mm=None,
-              pose=True, unit=None, click_noise_mm=None, line_noise_mm=3.0, identity=1.0, click_seed=None,
+              pose=True, unit=None, click_noise_mm=None, line_noise_mm=None, identity=1.0, click_seed=None,
               neck_tilt=0.0):
     """A TestHead for `seed` (deterministic per seed and arguments): see the module docstring.
 
     style "scan": the scan-like heads. None picks at random per head: n_targets (12-20 modifier
     targets), noise_mm (0.1-0.5 mm std along the normal), unit ("mm" or "m"). holes: True (the
     default) or False. click_noise_mm (default 2): people's disagreement, std per tangent axis;
-    line_noise_mm: along the lid and lip lines. identity scales every identity target. click_seed:
+    line_noise_mm (default 1.5x click_noise_mm: 3): along the lid and lip lines. identity scales every identity target. click_seed:
     another draw of the people's clicks on the same head (None: the head's own). neck_tilt: the
     head turned on its neck as a person sits for a scan (articulate_neck), its nod's std in degrees
     (0: as the identity left it, every head before this option the same to the bit).
@@ -512,6 +515,7 @@ def make_head(seed, *, style="legacy", n_targets=None, subdiv=2, decimate=0.6, h
     geo = _scan_geometry(seed, n_targets, subdiv, decimate, True if holes is None else bool(holes), noise_mm, pose,
                          unit, identity, float(neck_tilt))
     click_noise_mm = 2.0 if click_noise_mm is None else float(click_noise_mm)
+    line_noise_mm = LINE_NOISE * click_noise_mm if line_noise_mm is None else float(line_noise_mm)
     tpl = _template()
     fdp_refs = tpl.meta["fdps"]
     true_parts, true_fdps = geo["true_parts"], geo["true_fdps"]

@@ -63,7 +63,6 @@ REPORTING_SEEDS = tuple(range(100, 108))
 TUNING_SEEDS = tuple(range(50))
 METHODS = ("headadapt", "rbf_clicks", "nricp_amberg")
 CLICK_SETS = {"8": mpeg4.CLICKS_8, "11": mpeg4.CLICKS_11}
-COARSE_DECIMATE = 0.3       # --coarse: one subdivision kept at this ratio: about 4,000 vertices, a phone's scan
 
 
 def skin_fdp(tpl, verts, name):
@@ -380,10 +379,8 @@ def _head_args(args):
     given = {"identity": getattr(args, "identity", None), "n_targets": getattr(args, "targets", None),
              "neck_tilt": getattr(args, "neck_tilt", None), "noise_mm": getattr(args, "noise_mm", None),
              "click_noise_mm": getattr(args, "click_noise_mm", None)}
-    if getattr(args, "click_noise_mm", None) is not None:
-        given["line_noise_mm"] = 1.5 * args.click_noise_mm      # as the default 2 and 3 mm
     if getattr(args, "coarse", False):
-        given.update(subdiv=1, decimate=COARSE_DECIMATE)
+        given.update(testheads.PHONE_SCAN)
     return {k: v for k, v in given.items() if v is not None}
 
 

@@ -193,14 +193,14 @@ def test_a_phones_coarse_scan_and_sloppier_people(tpl, testheads, heads):
     clicks on it and the panel's 8 among them; people who disagree twice as much click about twice as
     far from the truth."""
     first = heads[0]
-    coarse = testheads.make_head(2, style="scan", subdiv=1, decimate=0.3)
+    coarse = testheads.make_head(2, style="scan", **testheads.PHONE_SCAN)
     assert 3000 < len(coarse.scan_verts) < 6000 < len(first.scan_verts)
     s = coarse.similarity[0]
     q = spatial.MeshQuery(coarse.scan_verts, coarse.scan_tris)
     assert q.closest_points(np.array(list(coarse.fdp_clicks.values())))[2].max() / s < 1e-6
     assert set(mpeg4.CLICKS_8) <= set(coarse.fdp_clicks)
 
-    sloppy = testheads.make_head(2, style="scan", click_noise_mm=4.0, line_noise_mm=6.0)
+    sloppy = testheads.make_head(2, style="scan", click_noise_mm=4.0)    # 6 mm along the lines
     names = [k for k in first.fdp_clicks if tpl.meta["fdps"][k]["part"] == "skin"]
     off = [np.linalg.norm([_unplace(h, h.fdp_clicks[k]) - _unplace(h, h.true_fdps[k]) for k in names], axis=1)
            for h in (first, sloppy)]
