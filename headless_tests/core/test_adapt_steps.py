@@ -19,9 +19,9 @@ from headadapt_addon.core.adapt.level0 import (
 from headadapt_addon.core.adapt.levels import csrbf_level, fit_level, solve_spd
 from headadapt_addon.core.adapt.options import FACE_REGIONS
 from headadapt_addon.core.adapt.pairs import curvature_pairs, feature_mesh_pairs, surface_pairs
-from headadapt_addon.core.adapt.pipeline import Unfolding
 from headadapt_addon.core.adapt.scan import ScanSide
 from headadapt_addon.core.adapt.snap import snap_to_scan
+from headadapt_addon.core.adapt.unfolding import Unfolding, blend_back, seen_rms_mm
 from headadapt_addon.core.mesh import geometry
 
 MM = 1000.0
@@ -251,16 +251,54 @@ def test_unfolding_relaxes_a_level_s_folds_as_it_will_be_delivered(tpl, case):
     truth = case[2]
     unfold = Unfolding(fit)
     same, report = unfold(truth)            # nothing folded: the skin as it is
-    assert same is truth and report == {"folded_triangles": 0, "vertices_relaxed": 0, "folded_left": 0}
+    assert same is truth and report == {"folded_triangles": 0, "vertices_relaxed": 0, "folded_left": 0,
+                                        "repair": None}
     # a nose-tip vertex pushed 8 mm into the head turns its triangles over
     folded = truth.copy()
     tip = int(np.argmax(tpl.skin.verts[:, 1] * -1.0 * _face(tpl)))
     folded[tip] += 0.008 * geometry.vertex_normals(truth, tpl.skin.tris)[tip] * -1.0
     n = len(geometry.folded(fit.V, folded, fit.tris))
     assert n > 0
-    out, report = unfold(folded)
+    first = Unfolding(fit)                  # level 0: no level below, so the folds are relaxed
+    out, report = first(folded)
     assert report["folded_triangles"] == n and report["folded_left"] == 0 and report["vertices_relaxed"] > 0
-    assert len(geometry.folded(fit.V, out, fit.tris)) == 0 and unfold.seconds >= unfold.last > 0
+    assert report["repair"] == "relaxed"
+    assert len(geometry.folded(fit.V, out, fit.tris)) == 0 and first.seconds >= first.last > 0
+    # after a level that folded nothing (the truth), the next level's folds go back to it round the tip,
+    # which lies on the scan: nearer it than the relaxation, and over a few vertices only
+    back, report = unfold(folded)
+    assert report["repair"] == "level below" and report["folded_left"] == 0
+    assert 0 < report["vertices_relaxed"] < 40
+    assert len(geometry.folded(fit.V, back, fit.tris)) == 0
+    assert seen_rms_mm(fit, back) < seen_rms_mm(fit, out)
+    assert np.array_equal(back[tip], truth[tip])
+
+
+def test_blend_back_takes_the_level_below_on_the_folds_and_the_level_beyond_its_rings(tpl, case):
+    """blend_back: the skin below on the folded triangles' corners, the level's own skin from `width`
+    rings out, the narrowest width that folds nothing; None when no width does."""
+    fit, *_ = _fit(tpl, case)
+    truth = case[2]
+    folded = truth.copy()
+    tip = int(np.argmax(tpl.skin.verts[:, 1] * -1.0 * _face(tpl)))
+    folded[tip] -= 0.008 * geometry.vertex_normals(truth, tpl.skin.tris)[tip]
+    corners = np.unique(fit.tris[fit.folds(folded)])
+    y, changed = blend_back(truth, folded, fit, (1, 2, 4))
+    assert np.array_equal(y[corners], truth[corners]) and len(fit.folds(y)) == 0
+    far = np.linalg.norm(tpl.skin.verts - tpl.skin.verts[tip], axis=1) > 0.03
+    assert np.array_equal(y[far], folded[far]) and changed >= len(corners)
+    # a level below that is itself folded there repairs nothing
+    assert blend_back(folded, folded, fit, (1, 2, 4)) == (None, 0)
+    # folds on kept vertices (the lids: Unfolding relaxes them after) are left as they are
+    lids = tpl.region_mask("eyelid_l")
+    lid = int(np.flatnonzero(lids & _face(tpl))[0])
+    both = folded.copy()
+    both[lid] -= 0.008 * geometry.vertex_normals(truth, tpl.skin.tris)[lid]
+    lid_folds = [f for f in fit.folds(both) if lid in fit.tris[f]]
+    assert lid_folds
+    y, _ = blend_back(truth, both, fit, (1, 2, 4), keep=lids)
+    assert np.array_equal(y[corners], truth[corners]) and np.array_equal(y[lid], both[lid])
+    assert set(fit.folds(y)) <= set(lid_folds)
 
 
 

@@ -75,6 +75,11 @@ class AdaptOptions:
     affine_ridge: float = 1e-3          # how firmly the affine map's linear part is held to the identity
     rays_from_level: int = 2            # from this level on, pairs along the template's normal (sec 4.1)
     fold_rounds: int = 2                # refits of a level without pairs around the triangles it folded
+    blend_back_rings: tuple = (1, 2, 3, 4, 6, 8, 12, 16)
+                                        # a level's folds may be repaired by the level below on their corners,
+                                        # the level's offset back in linearly over this many rings (the
+                                        # narrowest that folds nothing), when that leaves the skin nearer the
+                                        # scan than relaxing them (unfolding.py)
     icp_iterations: int = 3             # pairing and refit rounds per level (the least, for closest-point levels)
     icp_settle: float = 5e-5            # a closest-point level (below rays_from_level) goes on past them until a
                                         # round moves the skin less than this RMS, m: its pairs slide the skin
@@ -174,7 +179,7 @@ class AdaptResult:
     seconds: float
     distances: np.ndarray             # (n,) distance of each adapted skin vertex to the scan, m (nan: no match)
     scan: object = None               # the calibrated scan (template frame) with its queries
-    unfolded: dict = None             # folded triangles after the fit, vertices relaxed, folds left
+    unfolded: dict = None             # folded triangles after the fit, vertices moved, folds left, repair
     snapped: dict = None              # the last step's pairs, pins and rounds (snap.py); None: not run
     outcome: dict = None              # how it ended: folds left, seen-skin RMS, marker RMS, warnings, ok
     anatomy_support: float = 0.0      # map_points uses the levels with at least this support, m

@@ -30,6 +30,7 @@ from .outcome import fit_outcome, scan_beyond
 from .pairs import current_query, curvature_pairs, face_box, feature_mesh_pairs
 from .scan import ScanSide, start_spatial
 from .snap import snap_to_scan
+from .unfolding import Unfolding
 
 
 def adapt(tpl: Template, scan_verts: np.ndarray, scan_tris: np.ndarray, scan_fdps: dict[str, np.ndarray],
@@ -115,7 +116,7 @@ def _adapt(tpl, scan_verts, scan_tris, scan_fdps, options, markers, progress, ca
                                             min(reach, options.curvature_reach), fit.threshold / 2 ** (k + 1), query)
         say(0.1 + 0.85 * (k + 0.5) / (options.max_levels + 1), f"level {k}: fitting")
         pairs, sigma = fit_level(fit, clicks, k, fixed)          # csrbf_level in rounds of ICP
-        # a level is judged as it would be delivered: its folds relaxed (step 4 below)
+        # a level is judged as it would be delivered: its folds repaired (step 4 below)
         cur, unfolded = unfolding(fit.current())
         cur, _, errs = judge(cur)
         levels.append(Level(k, "csrbf", len(pairs), len(fixed), *errs,
@@ -125,7 +126,7 @@ def _adapt(tpl, scan_verts, scan_tris, scan_fdps, options, markers, progress, ca
         elif options.stop_at_minimum:
             break
 
-    # 4. the folds were relaxed at every level (Unfolding), so the level kept is the best as delivered;
+    # 4. the folds were repaired at every level (Unfolding), so the level kept is the best as delivered;
     # 5. then the skin is laid onto the scan where the scan shows it (snap.py; HeadAdapt, not the paper)
     t0 = time.perf_counter()       # (a fit far from the scan is delivered, and named, as the levels left it)
     hold = options.snap_reach > 0 and levels[best].E_d_rms_mm < options.bad_fit_rms_mm
@@ -240,29 +241,6 @@ def _refuse_far(names: list[str], dist: np.ndarray, where: str, options: AdaptOp
                                     "in the template's frame)")
             raise LandmarkError(f"FDP {k} ({mpeg4.FDPS[k].label}) is {far} after calibration: landmarks must be "
                                 "picked on this scan (a scan trimmed since, the wrong file or unit?)")
-
-
-class Unfolding:
-    """Step 4 for any level: skin (n,3) -> (the skin with its folded triangles relaxed by
-    geometry.unfold, {"folded_triangles", "vertices_relaxed", "folded_left"}); keeps the seconds spent
-    (`last` call, and in all). A level that folds is judged as it will be delivered, unfolded: on
-    Fran's closed eyes level 4 folded 19 lid triangles (level 3: 8), relaxed over 1290 vertices, and
-    its seen face ended 0.80 mm RMS from the scan against level 3's 0.53."""
-
-    def __init__(self, fit):
-        self.fit, self.seconds, self.last = fit, 0.0, 0.0
-
-    def __call__(self, cur):
-        t0 = time.perf_counter()
-        fit = self.fit
-        n_folded = len(fit.folds(cur))                     # the template's FoldCheck, made once
-        moved, left = 0, 0
-        if n_folded:
-            cur, relaxed, left = geometry.unfold(fit.V, cur, fit.tris, mean=fit.adjacency, folds=fit.folds)
-            moved = int(relaxed.sum())
-        self.last = time.perf_counter() - t0
-        self.seconds += self.last
-        return cur, {"folded_triangles": n_folded, "vertices_relaxed": moved, "folded_left": left}
 
 
 class Judge:
