@@ -30,14 +30,15 @@ def ring_distance(seed: np.ndarray, adjacency, most: int) -> tuple[np.ndarray, n
     piece[on] = csgraph.connected_components(adjacency[on][:, on], directed=False)[1]
     front = on
     for k in range(1, most + 1):
-        reached = ((adjacency[:, front] @ np.ones(len(front))) > 0) & (dist > k)
-        new = np.flatnonzero(reached)
-        if not len(new):
+        # the front's neighbours not reached yet take the ring and a front neighbour's piece
+        rows = adjacency[front]
+        nbrs = rows.indices
+        owner = np.repeat(front, np.diff(rows.indptr))
+        fresh = dist[nbrs] > k
+        if not fresh.any():
             break
-        # each new vertex takes the piece of a neighbour one ring in
-        rows = adjacency[new][:, front].tocsr()
-        dist[new], piece[new] = k, piece[front[rows.indices[rows.indptr[:-1]]]]
-        front = new
+        dist[nbrs[fresh]], piece[nbrs[fresh]] = k, piece[owner[fresh]]
+        front = np.unique(nbrs[fresh])
     return dist, piece
 
 
