@@ -522,8 +522,7 @@ def _adapt_and_write(record, verts, tris, points, markers, outputs, levels, cali
     if info.get("scan_pieces_turned"):
         log(f"  {info['scan_pieces_turned']} scan piece(s) faced inward: read turned round")
     if result.unfolded and result.unfolded["folded_triangles"]:
-        how = {"level below": "repaired by the level below", "relaxed": "relaxed"}.get(result.unfolded.get("repair"),
-                                                                                   "relaxed")
+        how = "repaired by the level below" if result.unfolded.get("repair") == "level below" else "relaxed"
         log(f"  {result.unfolded['folded_triangles']} folded triangles {how} "
             f"({result.unfolded['vertices_relaxed']} vertices), {result.unfolded['folded_left']} left")
     stages = report["stage_seconds"]          # each stage once: the .blend's own time without its bake

@@ -52,12 +52,13 @@ def blend_back(below: np.ndarray, cur: np.ndarray, fit, widths, keep: np.ndarray
     folded, for the caller to relax)."""
     keep = np.zeros(len(cur), bool) if keep is None else keep
     folds = fit.folds(cur)
+    corners = fit.tris[folds]
     seed = np.zeros(len(cur), bool)
-    seed[fit.tris[folds].ravel()] = True
+    seed[corners.ravel()] = True
     dist, piece = ring_distance(seed, fit.adjacency, max(widths))
     # the pieces with a kept vertex stay as they are: the level's own skin there, folds and all
-    kept = np.isin(piece, piece[fit.tris[folds][keep[fit.tris[folds]].any(axis=1)].ravel()])
-    left = folds[kept[fit.tris[folds]].any(axis=1)]
+    kept = np.isin(piece, piece[corners[keep[corners].any(axis=1)].ravel()])
+    left = folds[kept[corners].any(axis=1)]
     dist[kept], piece[kept] = max(widths) + 1, -1
     if not (piece >= 0).any():
         return None, 0
