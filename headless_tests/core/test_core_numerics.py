@@ -4,7 +4,8 @@ import pytest
 from scipy.spatial import ConvexHull
 from scipy.spatial.transform import Rotation
 
-from headadapt_addon.core.adapt import calibration, metrics, rbf
+from headadapt_addon.core import mpeg4
+from headadapt_addon.core.adapt import calibration, clicks, metrics, rbf
 from headadapt_addon.core.adapt.options import AdaptOptions
 from headadapt_addon.core.adapt.scan import ScanSide
 from headadapt_addon.core.exceptions import LandmarkError, MeshError
@@ -36,6 +37,31 @@ def test_calibration_reports_its_residuals_in_mm_too(tpl):
     assert set(info["rms_by_method_mm"]) == {"paper", "umeyama"}
     partial = calibration.calibrate({k: scan[k] for k in list(scan)[:10] if k not in ("3.7",)}, fdp, "auto")[1]
     assert partial["rms_by_method"]["paper"] is None and partial["rms_by_method_mm"]["paper"] is None
+
+
+def test_calibration_leans_on_the_face_and_reports_every_click(tpl):
+    """A click far from the face that disagrees with the template (the top of the skull 30 mm off, as
+    a head taller than the template's puts it) leaned the least-squares similarity away from the face.
+    Fitted to the face's clicks (adapt's lean_on: clicks.calibrated_on), the similarity is the face's,
+    and the far click is still reported with its residual."""
+    fdp = tpl.fdp_points()
+    truth = calibration.Similarity(1000.0, Rotation.from_euler("zyx", (20, -5, 3), degrees=True).as_matrix(),
+                                   np.array([5.0, -20.0, 300.0]))
+    names = list(mpeg4.CLICKS_11) + ["11.4"]
+    scan = {k: truth.apply(fdp[k] + (np.array([0.0, 0.0, 0.03]) if k == "11.4" else 0.0)) for k in names}
+    lean = clicks.calibrated_on(names)
+    assert "11.4" not in lean and set(lean) == set(mpeg4.CLICKS_11)
+    sim, info = calibration.calibrate(scan, fdp, "auto", lean_on=lean)
+    assert np.abs(sim.compose(truth).matrix4() - np.eye(4)).max() < 1e-9
+    assert info["not_leaned_on"] == ["11.4"] and info["residuals_mm"]["11.4"] == pytest.approx(30.0, abs=1e-6)
+    leaned, _ = calibration.calibrate(scan, fdp, "auto")                       # every click: pulled off
+    assert np.abs(leaned.compose(truth).matrix4() - np.eye(4))[:3].max() > 1e-3
+    few, info = calibration.calibrate(scan, fdp, "auto", lean_on=["3.7", "3.12", "11.4"])   # under 4: all
+    assert np.allclose(few.matrix4(), leaned.matrix4()) and "not_leaned_on" not in info
+    firm = {k: scan[k] for k in mpeg4.CLICKS_11}                                 # the panel's: all firm
+    same, info = calibration.calibrate(firm, fdp, "auto", lean_on=clicks.calibrated_on(firm))
+    assert np.array_equal(same.matrix4(), calibration.calibrate(firm, fdp, "auto")[0].matrix4())
+    assert "not_leaned_on" not in info
 
 
 @pytest.mark.parametrize("case,needle", [("nan", "3.7"), ("unknown", "3.15"), ("duplicate", "3.12"),

@@ -1,8 +1,10 @@
 """Head calibration (paper sec 3.1): the similarity that maps scan coordinates into the template frame.
 
 Two estimators: the paper's (rotation centre, Rz/Ry from the l axis, Rx from the m axis, scale from
-m; written frame-invariantly so any scan pose works) and the least-squares similarity over all
-common FDPs (Umeyama 1991). "auto" keeps the one with the lower RMS residual over all FDPs.
+m; written frame-invariantly so any scan pose works) and the least-squares similarity over the
+common FDPs (Umeyama 1991). "auto" keeps the one with the lower RMS residual over those FDPs. The
+adaptation fits it to the firm FDPs, not to the loose ones on the skull, the hairline, the jaw's
+angles, the brows and the backs of the ears (clicks.LOCAL_FDPS), when at least MIN_FDPS remain.
 """
 
 from __future__ import annotations
@@ -104,25 +106,31 @@ def _residuals(sim, scan_fdps, template_fdps):
 
 
 def calibrate(scan_fdps: dict[str, np.ndarray], template_fdps: dict[str, np.ndarray],
-              method: str = "auto") -> tuple[Similarity, dict]:
-    """(Similarity scan -> template frame, info {method, rms, residuals}); rms in template units."""
+              method: str = "auto", lean_on=None) -> tuple[Similarity, dict]:
+    """(Similarity scan -> template frame, info {method, rms, residuals}); rms in template units.
+    lean_on: the FDPs the least-squares similarity is fitted to and "auto" chooses by (default all;
+    used only if at least MIN_FDPS of them are given); the residuals are reported for every FDP."""
     common = {k: v for k, v in scan_fdps.items() if k in template_fdps}
     if len(common) < MIN_FDPS:
         raise LandmarkError(f"calibration needs at least {MIN_FDPS} FDPs on both the scan and the template "
                             f"(the paper's method uses {', '.join(mpeg4.CALIBRATION_FDPS)}); got "
                             f"{len(common)}: {', '.join(common) or 'none'}")
+    fitted = common if lean_on is None else {k: v for k, v in common.items() if k in lean_on}
+    fitted = fitted if MIN_FDPS <= len(fitted) < len(common) else common      # `is common`: all leaned on
     candidates = {}
-    have_paper = all(k in common for k in mpeg4.CALIBRATION_FDPS)
+    have_paper = all(k in fitted for k in mpeg4.CALIBRATION_FDPS)
     if method in ("paper", "auto") and (have_paper or method == "paper"):
         candidates["paper"] = paper_calibration(common, template_fdps)
     if method in ("umeyama", "auto"):
-        names = list(common)
-        candidates["umeyama"] = umeyama(np.array([common[k] for k in names]),
+        names = list(fitted)
+        candidates["umeyama"] = umeyama(np.array([fitted[k] for k in names]),
                                         np.array([template_fdps[k] for k in names]))
     if not candidates:
         raise LandmarkError(f"unknown calibration method {method!r} (use 'auto', 'paper' or 'umeyama')")
     scored = {name: _residuals(sim, common, template_fdps) for name, sim in candidates.items()}
-    best = min(scored, key=lambda name: scored[name][0])
+    chosen = scored if fitted is common else {name: _residuals(sim, fitted, template_fdps)
+                                              for name, sim in candidates.items()}
+    best = min(chosen, key=lambda name: chosen[name][0])
     rms, per = scored[best]
     # in the template's metres, and in its mm as the rest of report.json ("paper": None where the
     # paper's 8 FDPs are not all given)
@@ -131,7 +139,8 @@ def calibrate(scan_fdps: dict[str, np.ndarray], template_fdps: dict[str, np.ndar
     info = {"method": best, "rms": rms, "residuals": per, "rms_by_method": by_method,
             "rms_mm": rms * MM, "residuals_mm": {k: d * MM for k, d in per.items()},
             "rms_by_method_mm": {k: (v * MM if v is not None else None) for k, v in by_method.items()},
-            "units": "rms, residuals, rms_by_method: template frame, m; *_mm: template frame, mm"}
+            "units": "rms, residuals, rms_by_method: template frame, m; *_mm: template frame, mm",
+            **({"not_leaned_on": sorted(set(common) - set(fitted))} if fitted is not common else {})}
     return candidates[best], info
 
 

@@ -21,7 +21,7 @@ from ..mesh import geometry, repair, simplify
 from ..template import Template
 from ..tol import MM, TINY
 from . import calibration, metrics
-from .clicks import check_clicks, closed_mouth, handedness_notes
+from .clicks import calibrated_on, check_clicks, closed_mouth, handedness_notes
 from .fit import Fit, Pairs, prefetch
 from .level0 import feature_mesh, level_zero
 from .levels import fit_level
@@ -164,7 +164,9 @@ def calibrate(tpl: Template, scan_verts: np.ndarray, scan_tris: np.ndarray, scan
     unused = [k for k in given if k not in tpl_fdps]
     given = {k: v for k, v in given.items() if k in tpl_fdps}
     given, handed = calibration.check_handedness(given, tpl_fdps)
-    sim, info = calibration.calibrate(given, tpl_fdps, method=options.calibration)
+    # the face's own clicks place the head: a right click on the top of the skull or an ear leaned the
+    # least-squares similarity away from the face (clicks.LOCAL_FDPS); the levels take those clicks
+    sim, info = calibration.calibrate(given, tpl_fdps, method=options.calibration, lean_on=calibrated_on(given))
     scan_verts, scan_tris, info = repair.put_right(scan_verts, scan_tris, info)   # as exporters write them
     sv = sim.apply(scan_verts)
     q_fdp = {k: sim.apply(v) for k, v in given.items()}
