@@ -229,7 +229,7 @@ def _scan_arrays(context):
 
 
 class HEADADAPT_OT_suggest_landmarks(_Base, bpy.types.Operator):
-    """Propose every missing FDP on the scan from the placed ones (calibration + level-0 map, snapped to the surface)"""
+    """Propose every missing FDP on the scan where the adaptation from the placed ones puts it, snapped to the surface"""
     bl_idname = "headadapt.suggest_landmarks"
     bl_label = "Suggest the Rest"
 
@@ -241,10 +241,13 @@ class HEADADAPT_OT_suggest_landmarks(_Base, bpy.types.Operator):
         from ..core.adapt import suggest
         scan = settings(context).scan
         try:       # the clicks judged as Calibrate judges them: a wrong unit or wrong names refused, named
-            verts, tris, (fit, _tpl_fdps, _q_fdp, sim, _info), _rms = check_clicks(context)
-            # snapped to the scan as that judging prepared it (its tree made already; a dense scan's clusters)
+            verts, tris, answer, _rms = check_clicks(context)
+            fit, sim = answer[0], answer[3]
+            # where the adaptation from these clicks puts the rest (the scan as that judging prepared it,
+            # not prepared again), snapped to that scan (its tree made already; a dense scan's clusters)
             proposed = suggest.suggest_fdps(template(), verts, tris, landmarks.get_landmarks(scan),
-                                            snap=suggest.snap_to_prepared(fit.scan, sim))
+                                            snap=suggest.snap_to_prepared(fit.scan, sim),
+                                            options=adapt_options(settings(context)), calibrated=answer)
         except HeadAdaptError as exc:
             return self.fail(str(exc))
         if not proposed:

@@ -9,6 +9,8 @@
     ./ha bench adapt --seeds 600-615 --coarse        # a phone's scan: about 4,000 vertices
     ./ha bench adapt --seeds 600-615 --noise-mm 1    # a noisier scanner (std along the normal, mm)
     ./ha bench adapt --seeds 600-615 --click-noise-mm 4   # sloppier people (and 1.5x that along lid and lip lines)
+    ./ha bench adapt --seeds 0-11 --clicks 8 --per-marker   # each held-out FDP's error, and the RMS without it
+    ./ha bench adapt --seeds 0-11 --clicks 8,8+   # the 8 clicks, then with every suggestion accepted
 
 Seeds 100-107 are the REPORTING set (the default): figures quoted anywhere come from them. Seeds
 0-49 may be used for tuning (parameters, thresholds, ideas); never tune on 100-107, or the figures
@@ -54,7 +56,7 @@ sys.path.insert(0, str(ROOT))
 
 from headadapt_addon.batch import spatial_backend
 from headadapt_addon.core import adapt, meshio, mpeg4
-from headadapt_addon.core.adapt import level0
+from headadapt_addon.core.adapt import level0, suggest
 from headadapt_addon.core.mesh import geometry, spatial
 from headadapt_addon.core.template import load_template
 from tools import testheads
@@ -63,6 +65,16 @@ REPORTING_SEEDS = tuple(range(100, 108))
 TUNING_SEEDS = tuple(range(50))
 METHODS = ("headadapt", "rbf_clicks", "nricp_amberg")
 CLICK_SETS = {"8": mpeg4.CLICKS_8, "11": mpeg4.CLICKS_11}
+
+
+def set_clicks(tpl, head, name):
+    """The clicks of a set on a head: "8" or "11" as people click them; "8+" or "11+" those and every
+    FDP Suggest the Rest proposes from them, accepted whole (as an artist may)."""
+    clicks = {k: head.fdp_clicks[k] for k in CLICK_SETS[name.rstrip("+")] if k in head.fdp_clicks}
+    if name.endswith("+"):
+        clicks.update(suggest.suggest_fdps(tpl, head.scan_verts, head.scan_tris, clicks,
+                                           options=adapt.AdaptOptions(backend=spatial_backend())))
+    return clicks
 
 
 def skin_fdp(tpl, verts, name):
@@ -74,15 +86,16 @@ def skin_fdp(tpl, verts, name):
 def measure(tpl, head, verts_scan, seen_face, query):
     """Figures (mm of the true head) of an adapted skin given in the scan frame."""
     if verts_scan is None:            # the method failed
-        return {"corr_rms": np.inf, "corr_p95": np.inf, "surf_rms": np.inf, "marker_rms": np.inf}
+        return {"corr_rms": np.inf, "corr_p95": np.inf, "surf_rms": np.inf, "marker_rms": np.inf, "markers": {}}
     s = head.similarity[0]
     d = np.linalg.norm(verts_scan[seen_face] - head.true_template[seen_face], axis=1) / s * 1000
     surf = query.closest_points(verts_scan[seen_face])[2] / s * 1000
-    mk = [np.linalg.norm(skin_fdp(tpl, verts_scan, k) - p) / s * 1000 for k, p in head.markers.items()
-          if tpl.meta["fdps"][k]["part"] == "skin"]
+    each = {k: float(np.linalg.norm(skin_fdp(tpl, verts_scan, k) - p) / s * 1000) for k, p in head.markers.items()
+            if tpl.meta["fdps"][k]["part"] == "skin"}
+    mk = list(each.values())
     return {"corr_rms": float(np.sqrt(np.mean(d ** 2))), "corr_p95": float(np.percentile(d, 95)),
             "surf_rms": float(np.sqrt(np.mean(surf ** 2))),
-            "marker_rms": float(np.sqrt(np.mean(np.square(mk)))) if mk else float("nan")}
+            "marker_rms": float(np.sqrt(np.mean(np.square(mk)))) if mk else float("nan"), "markers": each}
 
 
 def peer_rbf(tpl, clicks, sim):
@@ -150,9 +163,10 @@ def _fmt(r):
             f"{r['seconds']:5.1f}")
 
 
-def report(rows, methods, set_name):
+def report(rows, methods, set_name, per_marker=False):
     """Print the per-head table (worst HeadAdapt correspondence first), medians and head counts."""
-    print(f"\n== {set_name} clicks ({', '.join(CLICK_SETS[set_name])}); mm of the true head, seen face; "
+    print(f"\n== {set_name} clicks ({', '.join(CLICK_SETS[set_name.rstrip('+')])}"
+          f"{' and every suggestion' if set_name.endswith('+') else ''}); mm of the true head, seen face; "
           f"HeadAdapt's spatial backend {spatial_backend()} ==")
     head = f"{'seed':>4s} {'unit':>4s} {'noise':>5s} {'clk':>3s} {'mk':>3s} "
     sub = "corr   p95  surf  mark     s"
@@ -161,7 +175,7 @@ def report(rows, methods, set_name):
     for r in sorted(rows, key=lambda r: -r["headadapt"]["corr_rms"]):
         print(f"{r['seed']:4d} {r['unit']:>4s} {r['noise']:5.2f} {r['clicks']:3d} {r['markers']:3d} "
               + " | ".join(f"{_fmt(r[m]):^29s}" for m in methods))
-    med = {m: {k: float(np.median([r[m][k] for r in rows])) for k in rows[0][m]} for m in methods}
+    med = {m: {k: float(np.median([r[m][k] for r in rows])) for k in rows[0][m] if k != "markers"} for m in methods}
     print(f"{'median':>21s}    " + " | ".join(f"{_fmt(med[m]):^29s}" for m in methods))
     floor = np.array([r["true_surf"] for r in rows])
     print(f"the true skin itself lies {np.median(floor):.2f} mm RMS from the scan on the seen face (median; "
@@ -174,7 +188,26 @@ def report(rows, methods, set_name):
         speed = np.median([r["nricp_amberg"]["seconds"] / r["headadapt"]["seconds"] for r in rows])
         print(f"HeadAdapt beats nricp_amberg on correspondence on {corr}/{n} heads, on surface on {surf}/{n}; "
               f"speed ratio nricp/HeadAdapt {speed:.1f}x (median per head)")
+    if per_marker:
+        marker_table(rows, methods)
     return med
+
+
+def marker_table(rows, methods):
+    """Each held-out FDP's error, RMS over the heads that hold it out, per method (worst for HeadAdapt
+    first), and each method's marker RMS without each FDP in turn: which FDPs the marker RMS is made of."""
+    names = sorted({k for r in rows for k in r["headadapt"]["markers"]})
+    rms = {m: {k: float(np.sqrt(np.mean([r[m]["markers"][k] ** 2 for r in rows if k in r[m]["markers"]])))
+               for k in names} for m in methods}
+    print("\nper held-out FDP: RMS over the heads (mm); then the median marker RMS without that FDP")
+    print(f"{'FDP':>6s} {'heads':>5s} " + " ".join(f"{m:>12s}" for m in methods) + "   without it: "
+          + " ".join(f"{m:>12s}" for m in methods))
+    for k in sorted(names, key=lambda k: -rms["headadapt"][k]):
+        n = sum(k in r["headadapt"]["markers"] for r in rows)
+        without = [float(np.median([np.sqrt(np.mean([v ** 2 for j, v in r[m]["markers"].items() if j != k]))
+                                    for r in rows if r[m]["markers"]])) for m in methods]
+        print(f"{k:>6s} {n:5d} " + " ".join(f"{rms[m][k]:12.2f}" for m in methods) + "   without it: "
+              + " ".join(f"{w:12.2f}" for w in without))
 
 
 def synthetic(args):
@@ -195,7 +228,7 @@ def synthetic(args):
         # the true skin's own distance from the scan (the module's "surf RMS")
         true_surf = measure(tpl, head, head.true_template, seen, query)["surf_rms"]
         for name in sets:
-            clicks = {k: head.fdp_clicks[k] for k in CLICK_SETS[name] if k in head.fdp_clicks}
+            clicks = set_clicks(tpl, head, name)
             out, res = run_methods(tpl, head.scan_verts, head.scan_tris, clicks, markers=head.markers,
                                    nricp=not args.no_nricp)
             row = {"seed": seed, "unit": head.meta["unit"], "noise": head.meta["noise_mm"], "clicks": len(clicks),
@@ -210,7 +243,7 @@ def synthetic(args):
                   + f"; the true skin's own surface {true_surf:.2f}"
                   + (f"; flagged {sorted(res.flagged)}" if res.flagged else ""), flush=True)
     for name in sets:
-        report(rows[name], methods, name)
+        report(rows[name], methods, name, getattr(args, "per_marker", False))
 
 
 def real(args):
@@ -346,7 +379,7 @@ def regions(args):
         seen = face & head.true_on_scan
         normal = geometry.vertex_normals(head.true_template, tpl.skin.tris)
         for name in args.clicks.split(","):
-            clicks = {k: head.fdp_clicks[k] for k in CLICK_SETS[name] if k in head.fdp_clicks}
+            clicks = set_clicks(tpl, head, name)
             out, res = run_methods(tpl, head.scan_verts, head.scan_tris, clicks, markers=head.markers,
                                    nricp=not args.no_nricp)
             moved = tpl.skin.verts.copy()
@@ -388,7 +421,8 @@ def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--seeds", type=parse_seeds, default=list(REPORTING_SEEDS),
                         help="heads to run, e.g. 100-107 (the reporting set, default) or 0-9 (tuning)")
-    parser.add_argument("--clicks", default="8,11", help="click sets: 8, 11 or 8,11")
+    parser.add_argument("--clicks", default="8,11",
+                        help="click sets: 8, 11 or 8,11; 8+ or 11+: those and Suggest the Rest's proposals, all accepted")
     parser.add_argument("--style", choices=("scan", "legacy"), default="scan",
                         help="scan-like heads (default) or the legacy ones the suite's tests use, to compare")
     parser.add_argument("--real", action="store_true", help="the real scans in ../shared/scans instead")
@@ -397,6 +431,8 @@ def main(argv=None):
     parser.add_argument("--regions", action="store_true",
                         help="where the error lies: along the skin by face region, after each level (and nricp's)")
     parser.add_argument("--no-nricp", action="store_true")
+    parser.add_argument("--per-marker", action="store_true",
+                        help="also each held-out FDP's error per method, and the marker RMS without it")
     parser.add_argument("--identity", type=float, default=None,
                         help="scale of the heads' identity morph (scan style; 0: the truth is the template itself)")
     parser.add_argument("--targets", type=int, default=None,
