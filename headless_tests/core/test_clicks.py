@@ -15,6 +15,17 @@ def _light(testheads, seed):
     return testheads.make_head(seed, style="scan", subdiv=1, decimate=1.0)
 
 
+def _correspondence(tpl, testheads, head):
+    """clicks -> (the adapted face's correspondence RMS on the seen face, mm of the true head; the result)."""
+    seen = testheads.face_mask(tpl) & head.true_on_scan
+
+    def corr(clicks):
+        res = adapt.adapt(tpl, head.scan_verts, head.scan_tris, clicks)
+        d = (res.verts_scan - head.true_template)[seen]
+        return float(np.sqrt(np.mean(np.sum(d ** 2, axis=1)))) / head.similarity[0] * MM, res
+    return corr
+
+
 @pytest.mark.slow
 def test_no_right_click_is_dropped_on_fifty_heads(tpl, testheads):
     flagged = {}
@@ -112,13 +123,7 @@ def test_a_right_click_on_the_skull_does_not_pull_the_face(tpl, testheads, seed)
     face's correspondence worse by 1.07 and 1.04 mm (11.4) and 0.67 and 0.62 mm (11.1) on these two
     heads. Calibration now leans on the face's clicks (clicks.LOCAL_FDPS), the levels take the others."""
     head = _light(testheads, seed)
-    seen = testheads.face_mask(tpl) & head.true_on_scan
-
-    def corr(clicks):
-        res = adapt.adapt(tpl, head.scan_verts, head.scan_tris, clicks)
-        d = (res.verts_scan - head.true_template)[seen]
-        return float(np.sqrt(np.mean(np.sum(d ** 2, axis=1)))) / head.similarity[0] * MM, res
-
+    corr = _correspondence(tpl, testheads, head)
     base = {k: head.fdp_clicks[k] for k in mpeg4.CLICKS_11 if k in head.fdp_clicks}
     alone, first = corr(base)
     for far in ("11.4", "11.1"):
@@ -139,13 +144,7 @@ def test_every_suggestion_accepted_keeps_the_fit(tpl, testheads, seed):
     from headadapt_addon.core.adapt import suggest
 
     head = _light(testheads, seed)
-    seen = testheads.face_mask(tpl) & head.true_on_scan
-
-    def corr(clicks):
-        res = adapt.adapt(tpl, head.scan_verts, head.scan_tris, clicks)
-        d = (res.verts_scan - head.true_template)[seen]
-        return float(np.sqrt(np.mean(np.sum(d ** 2, axis=1)))) / head.similarity[0] * MM, res
-
+    corr = _correspondence(tpl, testheads, head)
     eight = {k: head.fdp_clicks[k] for k in mpeg4.CLICKS_8}
     alone, _ = corr(eight)
     proposed = suggest.suggest_fdps(tpl, head.scan_verts, head.scan_tris, eight)
