@@ -521,6 +521,9 @@ def _adapt_and_write(record, verts, tris, points, markers, outputs, levels, cali
             "turned to match")
     if info.get("scan_pieces_turned"):
         log(f"  {info['scan_pieces_turned']} scan piece(s) faced inward: read turned round")
+    if info.get("not_leaned_on"):
+        log(f"  calibration fitted to the face's firm clicks, not to {', '.join(info['not_leaned_on'])} "
+            "(loosely placed: the levels take them)")
     if result.unfolded and result.unfolded["folded_triangles"]:
         how = "repaired by the level below" if result.unfolded.get("repair") == "level below" else "relaxed"
         log(f"  {result.unfolded['folded_triangles']} folded triangles {how} "

@@ -103,9 +103,14 @@ def test_no_command_line_overwrites_its_inputs(tmp_path, inputs, case):
 def test_results_are_replaced_only_with_overwrite_and_a_failed_rerun_leaves_no_stale_result(tmp_path, inputs):
     scan, marks = inputs
     out = tmp_path / "out"
-    assert batch("adapt", "--scan", scan, "--landmarks", marks, "--out", out, "--levels", "1").returncode == 0
+    proc = batch("adapt", "--scan", scan, "--landmarks", marks, "--out", out, "--levels", "1")
+    assert proc.returncode == 0
     report = json.loads((out / "report.json").read_text())
     assert report["status"] == "done"
+    # the sample clicks every FDP: calibration leaves the loose ones to the levels, and says so
+    loose = report["calibration"]["not_leaned_on"]
+    assert "11.4" in loose and "3.7" not in loose
+    assert f"calibration fitted to the face's firm clicks, not to {', '.join(loose)}" in proc.stdout
     stages = report["stage_seconds"]        # where the time went, without the .blend's transfer and bake
     assert list(stages) == ["read", "calibrate", "prepare", "level_0", "level_1", "snap", "unfold"], stages
     assert all(s > 0 for s in stages.values()) and sum(stages.values()) <= report["total_seconds"]
