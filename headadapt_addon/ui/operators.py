@@ -245,16 +245,23 @@ class HEADADAPT_OT_suggest_landmarks(_Base, bpy.types.Operator):
             fit, sim = answer[0], answer[3]
             # where the adaptation from these clicks puts the rest (the scan as that judging prepared it,
             # not prepared again), snapped to that scan (its tree made already; a dense scan's clusters)
+            wrong = {}
             proposed = suggest.suggest_fdps(template(), verts, tris, landmarks.get_landmarks(scan),
                                             snap=suggest.snap_to_prepared(fit.scan, sim),
-                                            options=adapt_options(settings(context)), calibrated=answer)
+                                            options=adapt_options(settings(context)), calibrated=answer,
+                                            flagged=wrong)
         except HeadAdaptError as exc:
             return self.fail(str(exc))
         if not proposed:
             self.report({"INFO"}, "every FDP a scanner sees is placed already: nothing to suggest")
             return {"FINISHED"}
         landmarks.set_landmarks(scan, proposed, prop=landmarks.SUGGESTED_PROP)
-        self.report({"INFO"}, f"suggested {len(proposed)} FDPs: accept or reject them one by one, or all at once")
+        msg = f"suggested {len(proposed)} FDPs: accept or reject them one by one, or all at once"
+        if wrong:           # the fit they came from judged a click wrong: say which, before it is built on
+            self.report({"WARNING"}, msg + "; the fit judges a click wrong: " + "; ".join(
+                f"FDP {k} ({mpeg4.FDPS[k].label}): {why}" for k, why in wrong.items()) + ": move it or clear it")
+        else:
+            self.report({"INFO"}, msg)
         return {"FINISHED"}
 
 

@@ -9,6 +9,7 @@ import pytest
 import headadapt_addon
 from headadapt_addon.batch import SAMPLE_DIR
 from headadapt_addon.core import meshio
+from headadapt_addon.core.mesh.spatial import MeshQuery
 
 
 def _sample_scan(name="scan"):
@@ -430,8 +431,9 @@ def test_bake_reports_progress_and_esc_leaves_no_shape_keys(ui_scene, monkeypatc
         assert "joy" in skin.data.shape_keys.key_blocks and s.progress_text == ""
 
 
-def test_suggest_refuses_clicks_in_another_unit_or_under_wrong_names(ui_scene):
-    """Suggest the Rest judges the clicks as Calibrate does: the cause named, nothing suggested."""
+def test_suggest_refuses_clicks_in_another_unit_or_under_wrong_names(ui_scene, capfd):
+    """Suggest the Rest judges the clicks as Calibrate does: the cause named, nothing suggested. A click
+    its fit judges wrong is named in a warning."""
     import bpy
 
     from headadapt_addon.blender import landmarks
@@ -456,6 +458,18 @@ def test_suggest_refuses_clicks_in_another_unit_or_under_wrong_names(ui_scene):
         assert bpy.ops.headadapt.suggest_landmarks() == {"FINISHED"}
         suggested = landmarks.get_landmarks(scan, landmarks.SUGGESTED_PROP)
         assert len(suggested) > 40 and not set(suggested) & set(eight)
+    # the chin clicked 25 mm up on the lips: the suggestions come from a fit that judged it wrong, and
+    # the report says so (a warning naming the FDP), before the artist builds on it
+    verts, tris = meshio.read_mesh(SAMPLE_DIR / "scan.ply")
+    up = (eight["9.3"] - eight["2.10"]) / np.linalg.norm(eight["9.3"] - eight["2.10"])
+    slip = dict(eight, **{"2.10": MeshQuery(verts, tris).closest_points((eight["2.10"] + 25.0 * up)[None])[0][0]})
+    with bpy.context.temp_override(**ui_scene):
+        landmarks.set_landmarks(scan, slip)
+        capfd.readouterr()
+        assert bpy.ops.headadapt.suggest_landmarks() == {"FINISHED"}
+        said = capfd.readouterr()
+    printed = (said.out + said.err).splitlines()
+    assert any(s.startswith("Warning: suggested") and "judges a click wrong: FDP 2.10" in s for s in printed), printed
 
 
 @pytest.mark.slow

@@ -13,7 +13,7 @@ from .pipeline import adapt
 
 def suggest_fdps(tpl: Template, scan_verts: np.ndarray, scan_tris: np.ndarray,
                  placed: dict[str, np.ndarray], snap=None, options: AdaptOptions | None = None,
-                 calibrated: tuple | None = None) -> dict[str, np.ndarray]:
+                 calibrated: tuple | None = None, flagged: dict | None = None) -> dict[str, np.ndarray]:
     """{FDP id: (3,)} proposals in the scan's frame for every visible template FDP not in `placed`.
 
     Where the adaptation from the placed FDPs puts them: the skin's FDPs on the adapted skin, the
@@ -21,7 +21,8 @@ def suggest_fdps(tpl: Template, scan_verts: np.ndarray, scan_tris: np.ndarray,
     of the placed FDPs; then snapped to the nearest point of the scan surface: snap(points (k,3)) ->
     (k,3) if given (the panel's: the scan as Calibrate prepared it, whose tree is made already), else
     the scan's closest points. options, calibrated: as adapt.adapt's (the panel hands both over, so
-    the scan is not prepared again). Accepted whole, the RBF's proposals alone (this function until
+    the scan is not prepared again). flagged: a dict the adaptation's wrong-click verdicts go into
+    ({FDP id: reason}; AdaptOptions.drop_flagged leaves them out of the fit proposed from). Accepted whole, the RBF's proposals alone (this function until
     stop 59) made the fit worse than the 8 clicks they came from on 11 of tuning heads 0-11, by 2.0 mm
     of correspondence on average and up to 5.2; these leave it within -0.64 and +0.29 mm of it (mean
     -0.08), for an adaptation's time (about 1 s) instead of 0.05 s (docs/MEASUREMENTS.md, stop 59).
@@ -36,7 +37,10 @@ def suggest_fdps(tpl: Template, scan_verts: np.ndarray, scan_tris: np.ndarray,
     others = [k for k in todo if k not in on_skin]
     guess = np.zeros((len(todo), 3))
     if on_skin:
-        skin = adapt(tpl, scan_verts, scan_tris, given, options, calibrated=calibrated).verts_scan
+        res = adapt(tpl, scan_verts, scan_tris, given, options, calibrated=calibrated)
+        skin = res.verts_scan
+        if flagged is not None:
+            flagged.update(res.flagged)
         refs = [tpl.meta["fdps"][k] for k in on_skin]
         corners = skin[tpl.skin.tris[[r["face"] for r in refs]]]                 # (k,3,3)
         guess[:len(on_skin)] = np.einsum("kj,kjd->kd", np.array([r["bary"] for r in refs]), corners)
