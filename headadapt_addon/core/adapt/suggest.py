@@ -22,10 +22,12 @@ def suggest_fdps(tpl: Template, scan_verts: np.ndarray, scan_tris: np.ndarray,
     (k,3) if given (the panel's: the scan as Calibrate prepared it, whose tree is made already), else
     the scan's closest points. options, calibrated: as adapt.adapt's (the panel hands both over, so
     the scan is not prepared again). flagged: a dict the adaptation's wrong-click verdicts go into
-    ({FDP id: reason}; AdaptOptions.drop_flagged leaves them out of the fit proposed from). Accepted whole, the RBF's proposals alone (this function until
-    stop 59) made the fit worse than the 8 clicks they came from on 11 of tuning heads 0-11, by 2.0 mm
-    of correspondence on average and up to 5.2; these leave it within -0.64 and +0.29 mm of it (mean
-    -0.08), for an adaptation's time (about 1 s) instead of 0.05 s (docs/MEASUREMENTS.md, stop 59).
+    ({FDP id: reason}; AdaptOptions.drop_flagged leaves them out of the fit proposed from).
+
+    Accepted whole, the RBF's proposals alone (this function until stop 59) made the fit worse than
+    the 8 clicks they came from on 11 of tuning heads 0-11, by 2.0 mm of correspondence on average and
+    up to 5.2; these leave it within -0.64 and +0.29 mm of it (mean -0.08), for an adaptation's time
+    (about 1 s) instead of 0.05 s (docs/MEASUREMENTS.md, stop 59).
     """
     tpl_pts = {k: p for k, p in tpl.fdp_points().items() if tpl.meta["fdps"][k]["part"] in SCANNER_VISIBLE_PARTS}
     given = calibration.validate_landmarks(placed, what="scan")
