@@ -121,7 +121,7 @@ def test_a_right_click_on_the_skull_does_not_pull_the_face(tpl, testheads, seed)
     on the top of the skull (11.4) or the hairline (11.1), where a head differs from the template more
     than one similarity follows, leaned calibration's least-squares similarity away from the face: the
     face's correspondence worse by 1.07 and 1.04 mm (11.4) and 0.67 and 0.62 mm (11.1) on these two
-    heads. Calibration now leans on the face's clicks (clicks.LOCAL_FDPS), the levels take the others."""
+    heads. Calibration now leans on the face's clicks (clicks.calibrated_on), the levels take the others."""
     head = _light(testheads, seed)
     corr = _correspondence(tpl, testheads, head)
     base = {k: head.fdp_clicks[k] for k in mpeg4.CLICKS_11 if k in head.fdp_clicks}

@@ -4,7 +4,7 @@ Two estimators: the paper's (rotation centre, Rz/Ry from the l axis, Rx from the
 m; written frame-invariantly so any scan pose works) and the least-squares similarity over the
 common FDPs (Umeyama 1991). "auto" keeps the one with the lower RMS residual over those FDPs. The
 adaptation fits it to the firm FDPs, not to the loose ones on the skull, the hairline, the jaw's
-angles, the brows and the backs of the ears (clicks.LOCAL_FDPS), when at least MIN_FDPS remain.
+angles, the brows and the backs of the ears (clicks.LOOSE_FDPS), when at least MIN_FDPS remain.
 """
 
 from __future__ import annotations

@@ -25,20 +25,16 @@ LOOSE_FDPS = {"11.4": 4.0, "11.5": 4.0,                          # the top of th
               "10.3": 1.5, "10.4": 1.5}                          # the backs of the ears
 
 
-# FDPs calibration's similarity does not lean on: the loose FDPs above. Where they sit against the eyes,
-# nose and mouth differs among people more than a similarity follows, and far from the face a least-squares
-# fit leans on them most; the levels take them as they take every click. Added to the panel's 11 clicks one
-# at a time on tuning heads 0-7, a right click on the top of the skull made the face's correspondence worse
-# by up to 2.3 mm (0.69 on average), on the hairline by up to 1.3. The ears were tried here too and kept:
-# left out, the CT head's tissue depths grew and the sample's one-level fit lost its neck
-# (docs/MEASUREMENTS.md, stop 59).
-LOCAL_FDPS = frozenset(LOOSE_FDPS)
-
-
 def calibrated_on(names) -> list[str]:
-    """The clicks calibration's similarity is fitted to: those not in LOCAL_FDPS (calibration.calibrate
-    falls back to every click where fewer than its minimum remain)."""
-    return [k for k in names if k not in LOCAL_FDPS]
+    """The clicks calibration's similarity is fitted to: those not in LOOSE_FDPS (calibration.calibrate
+    falls back to every click where fewer than its minimum remain). Where the loose FDPs sit against
+    the eyes, nose and mouth differs among people more than a similarity follows, and far from the face
+    a least-squares fit leans on them most; the levels take them as they take every click. Added to the
+    panel's 11 clicks one at a time on tuning heads 0-7, a right click on the top of the skull made the
+    face's correspondence worse by up to 2.3 mm (0.69 on average), on the hairline by up to 1.3. The
+    ears were tried here too and kept: left out, the CT head's tissue depths grew and the sample's
+    one-level fit lost its neck (docs/MEASUREMENTS.md, stop 59)."""
+    return [k for k in names if k not in LOOSE_FDPS]
 
 
 def check_clicks(fit: Fit, names: list[str], P: np.ndarray, Q: np.ndarray, weights: np.ndarray) -> dict[str, str]:

@@ -164,8 +164,8 @@ def calibrate(tpl: Template, scan_verts: np.ndarray, scan_tris: np.ndarray, scan
     unused = [k for k in given if k not in tpl_fdps]
     given = {k: v for k, v in given.items() if k in tpl_fdps}
     given, handed = calibration.check_handedness(given, tpl_fdps)
-    # the face's own clicks place the head: a right click on the top of the skull or an ear leaned the
-    # least-squares similarity away from the face (clicks.LOCAL_FDPS); the levels take those clicks
+    # the face's firm clicks place the head: a right click on the top of the skull or the hairline leaned
+    # the least-squares similarity away from the face (clicks.calibrated_on); the levels take those clicks
     sim, info = calibration.calibrate(given, tpl_fdps, method=options.calibration, lean_on=calibrated_on(given))
     scan_verts, scan_tris, info = repair.put_right(scan_verts, scan_tris, info)   # as exporters write them
     sv = sim.apply(scan_verts)
