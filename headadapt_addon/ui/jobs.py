@@ -63,7 +63,7 @@ _RUNNING = []          # the Runs started from a button and not yet ended (one a
 
 
 def busy():
-    """What a long operator started from a button is doing now ('Adapt', 'Bake'), or '' if none."""
+    """What a long operator started from a button is doing now ('Adapt', 'Bake', 'Suggest the Rest'), or '' if none."""
     return _RUNNING[0].what if _RUNNING else ""
 
 

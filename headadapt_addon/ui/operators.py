@@ -228,41 +228,70 @@ def _scan_arrays(context):
     return scan, verts, tris
 
 
-class HEADADAPT_OT_suggest_landmarks(_Base, bpy.types.Operator):
-    """Propose every missing FDP on the scan where the adaptation from the placed ones puts it, snapped to the surface"""
+class SuggestRun(Run):
+    """One Suggest the Rest: the clicks judged as Calibrate judges them and the adaptation from them on
+    a Job (about 1 s at 31k vertices, 2 s as a first press on 1M), the suggestions written at the end."""
+    what = "Suggest the Rest"
+
+    def __init__(self, context):
+        from ..core.adapt import suggest
+        self.clicks = clicks = gather_clicks(context)
+        self.scan = clicks.scan
+
+        def work(say):
+            say(0.0, "judging the clicks")
+            answer, _rms = judge_clicks(clicks)
+            fit, sim = answer[0], answer[3]
+            # where the adaptation from these clicks puts the rest (the scan as that judging prepared
+            # it, not prepared again), snapped to that scan (its tree made already; a dense scan's clusters)
+            wrong = {}
+            proposed = suggest.suggest_fdps(clicks.tpl, clicks.verts, clicks.tris, clicks.pts,
+                                            snap=suggest.snap_to_prepared(fit.scan, sim), options=clicks.options,
+                                            calibrated=answer, flagged=wrong,
+                                            progress=lambda f, msg: say(0.05 + 0.95 * f, msg))
+            return answer, proposed, wrong
+
+        self.work = work
+        self.job = Job(work)
+
+    def needs(self):
+        return (self.scan,)
+
+    def finish(self, context, value, report):
+        answer, proposed, wrong = value
+        kept.keep(self.clicks.key, answer)           # for the Adapt that follows (ui/kept.py)
+        now = landmarks.get_landmarks(self.scan)
+        if set(now) != set(self.clicks.pts) or any(not np.array_equal(now[k], self.clicks.pts[k]) for k in now):
+            report({"WARNING"}, "the clicks changed while Suggest the Rest ran: nothing suggested; press it again")
+            return {"CANCELLED"}
+        if not proposed:
+            report({"INFO"}, "every FDP a scanner sees is placed already: nothing to suggest")
+            return {"FINISHED"}
+        landmarks.set_landmarks(self.scan, proposed, prop=landmarks.SUGGESTED_PROP)
+        msg = f"suggested {len(proposed)} FDPs: accept or reject them one by one, or all at once"
+        if wrong:           # the fit they came from judged a click wrong: say which, before it is built on
+            report({"WARNING"}, msg + "; the fit judges a click wrong: " + "; ".join(
+                f"FDP {k} ({mpeg4.FDPS[k].label}): {why}" for k, why in wrong.items()) + ": move it or clear it")
+        else:
+            report({"INFO"}, msg)
+        return {"FINISHED"}
+
+
+class HEADADAPT_OT_suggest_landmarks(Modal, _Base, bpy.types.Operator):
+    """Propose every missing FDP on the scan where the adaptation from the placed ones puts it, snapped to the surface (Esc cancels)"""
     bl_idname = "headadapt.suggest_landmarks"
     bl_label = "Suggest the Rest"
+    long_run = True                  # one run at a time (jobs.busy): greyed while an Adapt or a Bake runs
 
     @classmethod
     def poll(cls, context):
         return poll_with_message(cls, landmark_problem(context))
 
-    def execute(self, context):
-        from ..core.adapt import suggest
-        scan = settings(context).scan
-        try:       # the clicks judged as Calibrate judges them: a wrong unit or wrong names refused, named
-            verts, tris, answer, _rms = check_clicks(context)
-            fit, sim = answer[0], answer[3]
-            # where the adaptation from these clicks puts the rest (the scan as that judging prepared it,
-            # not prepared again), snapped to that scan (its tree made already; a dense scan's clusters)
-            wrong = {}
-            proposed = suggest.suggest_fdps(template(), verts, tris, landmarks.get_landmarks(scan),
-                                            snap=suggest.snap_to_prepared(fit.scan, sim),
-                                            options=adapt_options(settings(context)), calibrated=answer,
-                                            flagged=wrong)
+    def make_run(self, context):
+        try:
+            return SuggestRun(context)
         except HeadAdaptError as exc:
-            return self.fail(str(exc))
-        if not proposed:
-            self.report({"INFO"}, "every FDP a scanner sees is placed already: nothing to suggest")
-            return {"FINISHED"}
-        landmarks.set_landmarks(scan, proposed, prop=landmarks.SUGGESTED_PROP)
-        msg = f"suggested {len(proposed)} FDPs: accept or reject them one by one, or all at once"
-        if wrong:           # the fit they came from judged a click wrong: say which, before it is built on
-            self.report({"WARNING"}, msg + "; the fit judges a click wrong: " + "; ".join(
-                f"FDP {k} ({mpeg4.FDPS[k].label}): {why}" for k, why in wrong.items()) + ": move it or clear it")
-        else:
-            self.report({"INFO"}, msg)
-        return {"FINISHED"}
+            return str(exc)
 
 
 def _suggestions_problem(context, fdp=""):
@@ -398,30 +427,46 @@ def check_clicks(context):
     scan), the RMS judged against the head's width: (the scan's verts and tris as read, pipeline.calibrate's
     answer (fit, template FDPs, clicked FDPs, similarity, info), RMS mm), or a HeadAdaptError naming the
     cause (too few, another unit, wrong names, a mirrored scan)."""
-    from ..core.adapt import calibration, pipeline
+    clicks = gather_clicks(context)
+    answer, rms_mm = judge_clicks(clicks)
+    kept.keep(clicks.key, answer)           # for the Adapt that follows (ui/kept.py)
+    return clicks.verts, clicks.tris, answer, rms_mm
+
+
+def gather_clicks(context):
+    """What judging the scene's clicks needs, read in the main thread (the scan's arrays, its clicks,
+    the options, their digest, the template), or a HeadAdaptError naming what is missing."""
+    from types import SimpleNamespace
     problem = landmark_problem(context)
     if problem:
         raise HeadAdaptError(problem)
     scan, verts, tris = _scan_arrays(context)
     pts = landmarks.get_landmarks(scan)
     options = adapt_options(settings(context))
-    key = kept.digest(verts, tris, pts, options)
-    answer = kept.get(key)           # the same scan, clicks and options judged before: as it was
+    return SimpleNamespace(scan=scan, verts=verts, tris=tris, pts=pts, options=options, tpl=template(),
+                           key=kept.digest(verts, tris, pts, options), head_mm=head_size_mm())
+
+
+def judge_clicks(clicks):
+    """gather_clicks' clicks judged (numpy only: a worker thread may run it): (pipeline.calibrate's
+    answer, its RMS in mm), the answer kept from the last judging of the same scan, clicks and options
+    if there is one; or a HeadAdaptError naming the cause (another unit, wrong names, a mirrored scan)."""
+    from ..core.adapt import calibration, pipeline
+    answer = kept.get(clicks.key)           # the same scan, clicks and options judged before: as it was
     try:
         if answer is None:
-            answer = pipeline.calibrate(template(), verts, tris, pts, options)
-            pipeline.check_on_surface(answer[0].scan, answer[2], options)
+            answer = pipeline.calibrate(clicks.tpl, clicks.verts, clicks.tris, clicks.pts, clicks.options)
+            pipeline.check_on_surface(answer[0].scan, answer[2], clicks.options)
     except HeadAdaptError as exc:
-        hint = calibration.unit_hint(verts, pts)
+        hint = calibration.unit_hint(clicks.verts, clicks.pts)
         raise HeadAdaptError(str(exc) + (f"; {hint}" if hint and hint.lower() not in str(exc).lower() else "")) from exc
     rms_mm = answer[4]["rms"] * 1000.0
-    head_mm = head_size_mm()
+    head_mm = clicks.head_mm
     if rms_mm > CALIBRATION_RMS_LIMIT * head_mm:
         raise HeadAdaptError(f"the landmarks do not fit the template's face: calibration RMS {rms_mm:.1f} mm is "
                              f"{100 * rms_mm / head_mm:.0f}% of the head's width ({head_mm:.0f} mm; limit "
                              f"{100 * CALIBRATION_RMS_LIMIT:.0f}%): FDPs given the wrong names, or a mirrored scan")
-    kept.keep(key, answer)           # for the Adapt that follows (ui/kept.py)
-    return verts, tris, answer, rms_mm
+    return answer, rms_mm
 
 
 CALIBRATION_RMS_LIMIT = 0.05     # of the head's width: people's faces differ from the template's by 1-3%

@@ -96,6 +96,7 @@ def draw_landmarks(layout, context):
         _fdp_row(box, name, pts, s)
     row = col.row(align=True)
     row.operator("headadapt.suggest_landmarks", icon="LIGHT")
+    _progress(col, context, "Suggest the Rest")
     suggested = landmarks.get_landmarks(s.scan, landmarks.SUGGESTED_PROP) if s.scan is not None else {}
     if suggested:      # each suggestion accepted or rejected on its own, or all at once
         box = col.box().column(align=True)
@@ -128,7 +129,7 @@ def _fdp_row(layout, name, pts, s):
 
 
 def _progress(layout, context, what):
-    """A running Adapt's or Bake's progress, in its own panel (the status bar says it too)."""
+    """A running Adapt's, Bake's or Suggest the Rest's progress, in its own panel (the status bar says it too)."""
     s = _settings(context)
     if s.progress_text and jobs.busy() == what:
         _wrapped(layout, context, s.progress_text.removeprefix("HeadAdapt: "), "TIME")

@@ -1,7 +1,9 @@
 """Adapt pressed twice in a real Blender window (run by test_blender_binary.py under xvfb-run): the
 sample scan with its 8 clicks, Adapt started from the button's path (invoke: a worker thread, a
 timer), pressed again at once, then left to finish. Prints "gui_adapt: RESULT {...}": whether the
-second press was refused while the first ran, the results made, and whether Adapt is usable again.
+second press was refused while the first ran, the results made, and whether Adapt is usable again;
+then Suggest the Rest from its button (a worker thread too): what it answered, whether Adapt was
+greyed meanwhile, and the suggestions written when it ended.
 """
 import pathlib
 import sys
@@ -33,8 +35,27 @@ def wait():
     RESULT["results"] = len(roots)
     with bpy.context.temp_override(**shots._override()):
         RESULT["usable_again"] = bool(bpy.ops.headadapt.adapt.poll())
+    return 0.1
+
+
+def suggest():
+    from headadapt_addon.ui import jobs
+    with bpy.context.temp_override(**shots._override()):
+        RESULT["suggest"] = sorted(bpy.ops.headadapt.suggest_landmarks("INVOKE_DEFAULT"))
+        RESULT["suggest_busy"] = jobs.busy()
+        RESULT["adapt_greyed"] = not bpy.ops.headadapt.adapt.poll()
+    return 0.5
+
+
+def suggested():
+    from headadapt_addon.blender import landmarks
+    from headadapt_addon.ui import jobs
+    if jobs.busy():
+        return ("again", 0.5)
+    scan = bpy.context.scene.headadapt.scan
+    RESULT["suggested"] = len(landmarks.get_landmarks(scan, landmarks.SUGGESTED_PROP))
     print("gui_adapt: RESULT", RESULT, flush=True)
     return 0.1
 
 
-shots.play([shots.setup, shots.redraw, shots.clicks8, press, wait], first_interval=1.0)
+shots.play([shots.setup, shots.redraw, shots.clicks8, press, wait, suggest, suggested], first_interval=1.0)

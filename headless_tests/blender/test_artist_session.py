@@ -383,6 +383,76 @@ def test_a_running_adapt_greys_adapt_and_bake_and_a_scan_removed_meanwhile_chang
         assert s.result_root is None and s.progress_text == ""
 
 
+def test_suggest_from_a_button_works_on_a_thread_esc_cancels_and_a_click_moved_meanwhile_writes_nothing(ui_scene):
+    """Suggest the Rest runs an adaptation (about 1 s at 31k vertices, 2 s as a first press on 1M): it
+    blocked Blender's window with no progress and no way out. From a button now: on a thread, its
+    progress shown, Adapt and Bake greyed while it runs, Esc leaves the scan as it was; a click moved
+    while it ran leaves the suggestions unwritten (they came from the clicks before)."""
+    import time
+    from types import SimpleNamespace
+
+    import bpy
+
+    from headadapt_addon.blender import landmarks
+    from headadapt_addon.core import mpeg4
+    from headadapt_addon.ui import jobs, operators
+
+    clicks = meshio.read_landmarks(SAMPLE_DIR / "landmarks.json")
+    eight = {k: clicks[k] for k in mpeg4.CLICKS_8}
+    with bpy.context.temp_override(**ui_scene):
+        ctx, wm, s = bpy.context, bpy.context.window_manager, bpy.context.scene.headadapt
+        scan = _sample_scan()
+        landmarks.set_landmarks(scan, eight)
+        reports = []
+
+        def start():
+            operators._forget_kept()                 # judged anew each time: the run is long enough to watch
+            run = operators.SuggestRun(ctx)
+            op = SimpleNamespace(_run=run, _timer=wm.event_timer_add(0.25, window=ctx.window),
+                                 report=lambda kind, text: reports.append((kind, text)))
+            wm.progress_begin(0, 100)
+            jobs._RUNNING.append(run)
+            run.job.start()
+            return op, lambda kind: operators.HEADADAPT_OT_suggest_landmarks.modal(op, ctx, SimpleNamespace(type=kind))
+
+        def to_the_end(event):
+            deadline = time.time() + 120
+            while (answer := event("TIMER")) == {"RUNNING_MODAL"} and time.time() < deadline:
+                time.sleep(0.02)
+            return answer
+
+        op, event = start()
+        assert jobs.busy() == "Suggest the Rest"
+        assert not bpy.ops.headadapt.adapt.poll() and not bpy.ops.headadapt.suggest_landmarks.poll()
+        assert event("MOUSEMOVE") == {"PASS_THROUGH"}             # the viewport stays usable
+        deadline = time.time() + 60
+        while not s.progress_text and time.time() < deadline:
+            assert event("TIMER") == {"RUNNING_MODAL"}
+            time.sleep(0.01)
+        assert s.progress_text.startswith("HeadAdapt: ")
+        assert event("ESC") == {"CANCELLED"}
+        assert op._run.job.wait(60) and isinstance(op._run.job.error, jobs.Cancelled)
+        assert landmarks.SUGGESTED_PROP not in scan and landmarks.get_landmarks(scan).keys() == eight.keys()
+        assert reports[-1] == ({"WARNING"}, "Suggest the Rest cancelled: the scene is as it was")
+        assert jobs.busy() == "" and s.progress_text == "" and bpy.ops.headadapt.adapt.poll()
+        # a click moved while it runs: nothing suggested, said so
+        op, event = start()
+        landmarks.set_landmarks(scan, dict(eight, **{"9.3": eight["9.3"] + 1.0}))
+        assert to_the_end(event) == {"CANCELLED"} and landmarks.SUGGESTED_PROP not in scan
+        assert reports[-1][0] == {"WARNING"} and "clicks changed while Suggest the Rest ran" in reports[-1][1]
+        # left to run, the same path ends with the suggestions, as bpy.ops gives them
+        landmarks.set_landmarks(scan, eight)
+        op, event = start()
+        assert to_the_end(event) == {"FINISHED"} and s.progress_text == "" and jobs.busy() == ""
+        assert reports[-1][0] == {"INFO"} and reports[-1][1].startswith("suggested ")
+        threaded = landmarks.get_landmarks(scan, landmarks.SUGGESTED_PROP)
+        del scan[landmarks.SUGGESTED_PROP]
+        assert bpy.ops.headadapt.suggest_landmarks() == {"FINISHED"}
+        waited = landmarks.get_landmarks(scan, landmarks.SUGGESTED_PROP)
+        assert len(threaded) > 40 and threaded.keys() == waited.keys()
+        assert all(np.array_equal(threaded[k], waited[k]) for k in waited)
+
+
 @pytest.mark.slow
 def test_bake_reports_progress_and_esc_leaves_no_shape_keys(ui_scene, monkeypatch):
     import time

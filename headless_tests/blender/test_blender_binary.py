@@ -103,11 +103,14 @@ def test_the_picker_in_a_real_window_leaves_a_click_on_the_sidebar_to_the_sideba
 def test_adapt_pressed_twice_in_a_real_window_runs_once(tmp_path):
     """The button's own path (invoke: a worker thread and a timer): pressed again while it runs, Adapt
     is refused with the reason (before, a second run started beside the first); one result; usable
-    again when done."""
+    again when done. Suggest the Rest from its button runs on a thread the same way (it adapts: about
+    a second, Blender's window blocked before), Adapt greyed meanwhile, its suggestions written at the end."""
     result = eval(_in_a_window("gui_adapt.py", tmp_path))
     assert result["first"] == ["RUNNING_MODAL"], result
     assert result["second"] == "refused: Adapt is running: wait for it, or press Esc to cancel it", result
     assert result["results"] == 1 and result["usable_again"], result
+    assert result["suggest"] == ["RUNNING_MODAL"] and result["suggest_busy"] == "Suggest the Rest", result
+    assert result["adapt_greyed"] and result["suggested"] > 40, result
 
 
 def test_a_blender_binary_that_can_import_embreex_keeps_the_numpy_tree(tmp_path):

@@ -13,7 +13,8 @@ from .pipeline import adapt
 
 def suggest_fdps(tpl: Template, scan_verts: np.ndarray, scan_tris: np.ndarray,
                  placed: dict[str, np.ndarray], snap=None, options: AdaptOptions | None = None,
-                 calibrated: tuple | None = None, flagged: dict | None = None) -> dict[str, np.ndarray]:
+                 calibrated: tuple | None = None, flagged: dict | None = None,
+                 progress=None) -> dict[str, np.ndarray]:
     """{FDP id: (3,)} proposals in the scan's frame for every visible template FDP not in `placed`.
 
     Where the adaptation from the placed FDPs puts them: the skin's FDPs on the adapted skin, the
@@ -22,7 +23,8 @@ def suggest_fdps(tpl: Template, scan_verts: np.ndarray, scan_tris: np.ndarray,
     (k,3) if given (the panel's: the scan as Calibrate prepared it, whose tree is made already), else
     the scan's closest points. options, calibrated: as adapt.adapt's (the panel hands both over, so
     the scan is not prepared again). flagged: a dict the adaptation's wrong-click verdicts go into
-    ({FDP id: reason}; AdaptOptions.drop_flagged leaves them out of the fit proposed from).
+    ({FDP id: reason}; AdaptOptions.drop_flagged leaves them out of the fit proposed from). progress:
+    the adaptation's progress(fraction, message), if given.
 
     Accepted whole, the RBF's proposals alone (this function until stop 59) made the fit worse than
     the 8 clicks they came from on 11 of tuning heads 0-11, by 2.0 mm of correspondence on average and
@@ -39,7 +41,7 @@ def suggest_fdps(tpl: Template, scan_verts: np.ndarray, scan_tris: np.ndarray,
     others = [k for k in todo if k not in on_skin]
     guess = np.zeros((len(todo), 3))
     if on_skin:
-        res = adapt(tpl, scan_verts, scan_tris, given, options, calibrated=calibrated)
+        res = adapt(tpl, scan_verts, scan_tris, given, options, progress=progress, calibrated=calibrated)
         skin = res.verts_scan
         if flagged is not None:
             flagged.update(res.flagged)
