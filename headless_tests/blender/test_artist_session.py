@@ -24,6 +24,42 @@ def _sample_scan(name="scan"):
     return obj
 
 
+def _from_the_button(ctx, run, operator, reports):
+    """A long operator's run started as Modal.invoke starts it from a button (headless, bpy.ops runs
+    execute: waited for): (the operator as modal() sees it, event(kind) -> modal()'s answer to a
+    stand-in event of that kind). Reports go to the list reports."""
+    from types import SimpleNamespace
+
+    from headadapt_addon.ui import jobs
+
+    wm = ctx.window_manager
+    op = SimpleNamespace(_run=run, _timer=wm.event_timer_add(0.25, window=ctx.window),
+                         report=lambda kind, text: reports.append((kind, text)))
+    wm.progress_begin(0, 100)
+    jobs._RUNNING.append(run)
+    run.job.start()
+    return op, lambda kind: operator.modal(op, ctx, SimpleNamespace(type=kind))
+
+
+def _progress_shown(event, s):
+    """Timer events until the run's progress shows (each answered: still running); whether it showed."""
+    import time
+    deadline = time.time() + 60
+    while not s.progress_text and time.time() < deadline:
+        assert event("TIMER") == {"RUNNING_MODAL"}
+        time.sleep(0.01)
+    return s.progress_text.startswith("HeadAdapt: ")
+
+
+def _to_the_end(event):
+    """Timer events until the run ends: its last answer."""
+    import time
+    deadline = time.time() + 120
+    while (answer := event("TIMER")) == {"RUNNING_MODAL"} and time.time() < deadline:
+        time.sleep(0.02)
+    return answer
+
+
 def _greyed_because(op):
     """The poll message of a greyed operator (bpy.ops raises it), or None when it can run."""
     if op.poll():
@@ -287,7 +323,6 @@ def test_adapt_reports_progress_and_replaces_its_last_result(ui_scene, monkeypat
 @pytest.mark.slow
 def test_adapt_from_a_button_works_on_a_thread_and_esc_leaves_the_scene_as_it_was(ui_scene):
     """The button's modal path with stand-in events: a timer shows progress, Esc cancels."""
-    import time
     from types import SimpleNamespace
 
     import bpy
@@ -296,27 +331,18 @@ def test_adapt_from_a_button_works_on_a_thread_and_esc_leaves_the_scene_as_it_wa
     from headadapt_addon.ui import jobs, operators
 
     with bpy.context.temp_override(**ui_scene):
-        ctx, wm, s = bpy.context, bpy.context.window_manager, bpy.context.scene.headadapt
+        ctx, s = bpy.context, bpy.context.scene.headadapt
         scan = _sample_scan()
         landmarks.set_landmarks(scan, meshio.read_landmarks(SAMPLE_DIR / "landmarks.json"))
         before = sorted(o.name for o in bpy.data.objects)
         reports = []
 
         def start(levels):
-            run = operators.AdaptRun(ctx, levels)
-            op = SimpleNamespace(_run=run, _timer=wm.event_timer_add(0.25, window=ctx.window),
-                                 report=lambda kind, text: reports.append((kind, text)))
-            wm.progress_begin(0, 100)
-            run.job.start()
-            return op, lambda kind: operators.HEADADAPT_OT_adapt.modal(op, ctx, SimpleNamespace(type=kind))
+            return _from_the_button(ctx, operators.AdaptRun(ctx, levels), operators.HEADADAPT_OT_adapt, reports)
 
         op, event = start(3)
         assert event("MOUSEMOVE") == {"PASS_THROUGH"}             # the viewport stays usable
-        deadline = time.time() + 60
-        while not s.progress_text and time.time() < deadline:
-            assert event("TIMER") == {"RUNNING_MODAL"}
-            time.sleep(0.02)
-        assert s.progress_text.startswith("HeadAdapt: ")
+        assert _progress_shown(event, s)
         # Ctrl-Z while it runs is held (it undid Calibrate, and the finished run was then thrown away)
         ctrl_z = SimpleNamespace(type="Z", value="PRESS", ctrl=True, oskey=False)
         assert operators.HEADADAPT_OT_adapt.modal(op, ctx, ctrl_z) == {"RUNNING_MODAL"}
@@ -328,9 +354,7 @@ def test_adapt_from_a_button_works_on_a_thread_and_esc_leaves_the_scene_as_it_wa
         assert reports[-1] == ({"WARNING"}, "Adapt cancelled: the scene is as it was")
         # left to run, the same path ends with the result
         op, event = start(1)
-        deadline = time.time() + 120
-        while (answer := event("TIMER")) == {"RUNNING_MODAL"} and time.time() < deadline:
-            time.sleep(0.05)
+        answer = _to_the_end(event)
         assert answer == {"FINISHED"} and s.result_root.name == "scan adapted" and s.progress_text == ""
         assert reports[-1][0] == {"INFO"} and reports[-1][1].startswith("adapted: best level")
 
@@ -340,8 +364,6 @@ def test_a_running_adapt_greys_adapt_and_bake_and_a_scan_removed_meanwhile_chang
     one runs, and again usable once it ends or another file is loaded (its operator gone). A scan
     deleted (or undone) while Adapt runs: before, a ReferenceError traceback after the previous
     result had been removed; now an error report and the scene as it was."""
-    import time
-    from types import SimpleNamespace
 
     import bpy
 
@@ -369,15 +391,9 @@ def test_a_running_adapt_greys_adapt_and_bake_and_a_scan_removed_meanwhile_chang
         # a scan removed while the run works: nothing written, said so
         before = sorted(o.name for o in bpy.data.objects)
         reports = []
-        run = operators.AdaptRun(ctx, 1)
-        op = SimpleNamespace(_run=run, _timer=ctx.window_manager.event_timer_add(0.25, window=ctx.window),
-                             report=lambda kind, text: reports.append((kind, text)))
-        run.job.start()
+        op, event = _from_the_button(ctx, operators.AdaptRun(ctx, 1), operators.HEADADAPT_OT_adapt, reports)
         bpy.data.objects.remove(scan)
-        deadline = time.time() + 120
-        while (answer := operators.HEADADAPT_OT_adapt.modal(op, ctx, SimpleNamespace(type="TIMER"))) == {"RUNNING_MODAL"} \
-                and time.time() < deadline:
-            time.sleep(0.05)
+        answer = _to_the_end(event)
         assert answer == {"CANCELLED"} and reports[-1][0] == {"ERROR"} and "removed while it ran" in reports[-1][1]
         assert sorted(o.name for o in bpy.data.objects) == sorted(n for n in before if n != "scan")
         assert s.result_root is None and s.progress_text == ""
@@ -388,8 +404,6 @@ def test_suggest_from_a_button_works_on_a_thread_esc_cancels_and_a_click_moved_m
     blocked Blender's window with no progress and no way out. From a button now: on a thread, its
     progress shown, Adapt and Bake greyed while it runs, Esc leaves the scan as it was; a click moved
     while it ran leaves the suggestions unwritten (they came from the clicks before)."""
-    import time
-    from types import SimpleNamespace
 
     import bpy
 
@@ -400,36 +414,20 @@ def test_suggest_from_a_button_works_on_a_thread_esc_cancels_and_a_click_moved_m
     clicks = meshio.read_landmarks(SAMPLE_DIR / "landmarks.json")
     eight = {k: clicks[k] for k in mpeg4.CLICKS_8}
     with bpy.context.temp_override(**ui_scene):
-        ctx, wm, s = bpy.context, bpy.context.window_manager, bpy.context.scene.headadapt
+        ctx, s = bpy.context, bpy.context.scene.headadapt
         scan = _sample_scan()
         landmarks.set_landmarks(scan, eight)
         reports = []
 
         def start():
             operators._forget_kept()                 # judged anew each time: the run is long enough to watch
-            run = operators.SuggestRun(ctx)
-            op = SimpleNamespace(_run=run, _timer=wm.event_timer_add(0.25, window=ctx.window),
-                                 report=lambda kind, text: reports.append((kind, text)))
-            wm.progress_begin(0, 100)
-            jobs._RUNNING.append(run)
-            run.job.start()
-            return op, lambda kind: operators.HEADADAPT_OT_suggest_landmarks.modal(op, ctx, SimpleNamespace(type=kind))
-
-        def to_the_end(event):
-            deadline = time.time() + 120
-            while (answer := event("TIMER")) == {"RUNNING_MODAL"} and time.time() < deadline:
-                time.sleep(0.02)
-            return answer
+            return _from_the_button(ctx, operators.SuggestRun(ctx), operators.HEADADAPT_OT_suggest_landmarks, reports)
 
         op, event = start()
         assert jobs.busy() == "Suggest the Rest"
         assert not bpy.ops.headadapt.adapt.poll() and not bpy.ops.headadapt.suggest_landmarks.poll()
         assert event("MOUSEMOVE") == {"PASS_THROUGH"}             # the viewport stays usable
-        deadline = time.time() + 60
-        while not s.progress_text and time.time() < deadline:
-            assert event("TIMER") == {"RUNNING_MODAL"}
-            time.sleep(0.01)
-        assert s.progress_text.startswith("HeadAdapt: ")
+        assert _progress_shown(event, s)
         assert event("ESC") == {"CANCELLED"}
         assert op._run.job.wait(60) and isinstance(op._run.job.error, jobs.Cancelled)
         assert landmarks.SUGGESTED_PROP not in scan and landmarks.get_landmarks(scan).keys() == eight.keys()
@@ -438,12 +436,12 @@ def test_suggest_from_a_button_works_on_a_thread_esc_cancels_and_a_click_moved_m
         # a click moved while it runs: nothing suggested, said so
         op, event = start()
         landmarks.set_landmarks(scan, dict(eight, **{"9.3": eight["9.3"] + 1.0}))
-        assert to_the_end(event) == {"CANCELLED"} and landmarks.SUGGESTED_PROP not in scan
+        assert _to_the_end(event) == {"CANCELLED"} and landmarks.SUGGESTED_PROP not in scan
         assert reports[-1][0] == {"WARNING"} and "clicks changed while Suggest the Rest ran" in reports[-1][1]
         # left to run, the same path ends with the suggestions, as bpy.ops gives them
         landmarks.set_landmarks(scan, eight)
         op, event = start()
-        assert to_the_end(event) == {"FINISHED"} and s.progress_text == "" and jobs.busy() == ""
+        assert _to_the_end(event) == {"FINISHED"} and s.progress_text == "" and jobs.busy() == ""
         assert reports[-1][0] == {"INFO"} and reports[-1][1].startswith("suggested ")
         threaded = landmarks.get_landmarks(scan, landmarks.SUGGESTED_PROP)
         del scan[landmarks.SUGGESTED_PROP]
@@ -455,8 +453,6 @@ def test_suggest_from_a_button_works_on_a_thread_esc_cancels_and_a_click_moved_m
 
 @pytest.mark.slow
 def test_bake_reports_progress_and_esc_leaves_no_shape_keys(ui_scene, monkeypatch):
-    import time
-    from types import SimpleNamespace
 
     import bpy
 
@@ -471,23 +467,17 @@ def test_bake_reports_progress_and_esc_leaves_no_shape_keys(ui_scene, monkeypatc
 
     monkeypatch.setattr(jobs, "show_progress", record)
     with bpy.context.temp_override(**ui_scene):
-        ctx, wm, s = bpy.context, bpy.context.window_manager, bpy.context.scene.headadapt
+        ctx, s = bpy.context, bpy.context.scene.headadapt
         assert bpy.ops.headadapt.add_template() == {"FINISHED"}
         root = s.template_root
         skin = next(o for o in root.children_recursive if o.get("headadapt_part") == "skin")
         # from a button (modal, stand-in events): Esc while it bakes leaves no key behind
-        run = operators.BakeRun(root, ("expression",), True)
         reports = []
-        op = SimpleNamespace(_run=run, _timer=wm.event_timer_add(0.25, window=ctx.window),
-                             report=lambda kind, text: reports.append((kind, text)))
-        wm.progress_begin(0, 100)
-        run.job.start()
-        deadline = time.time() + 120
-        while not s.progress_text.startswith("HeadAdapt: ") and time.time() < deadline:
-            assert operators.HEADADAPT_OT_bake_expressions.modal(op, ctx, SimpleNamespace(type="TIMER")) \
-                == {"RUNNING_MODAL"}
-            time.sleep(0.05)
-        assert operators.HEADADAPT_OT_bake_expressions.modal(op, ctx, SimpleNamespace(type="ESC")) == {"CANCELLED"}
+        op, event = _from_the_button(ctx, operators.BakeRun(root, ("expression",), True),
+                                     operators.HEADADAPT_OT_bake_expressions, reports)
+        run = op._run
+        assert _progress_shown(event, s)
+        assert event("ESC") == {"CANCELLED"}
         assert run.job.wait(120) and isinstance(run.job.error, jobs.Cancelled)
         assert skin.data.shape_keys is None and s.progress_text == ""
         assert reports[-1] == ({"WARNING"}, "Bake cancelled: the scene is as it was")
