@@ -12,6 +12,7 @@ from ..core import mpeg4
 
 PROP = "headadapt_landmarks"
 SUGGESTED_PROP = "headadapt_suggested"
+FLAGGED_PROP = "headadapt_flagged"       # the clicks the last fit judged wrong, each with where it was
 # the order the picker walks: the 8 clicks calibration and Suggest the Rest start from, then the rest
 GUIDED_ORDER = mpeg4.CLICKS_8 + tuple(k for k in mpeg4.FDPS if k not in mpeg4.CLICKS_8)
 
@@ -31,6 +32,30 @@ def set_landmarks(obj, points, prop=PROP):
     """Store {FDP id: (3,) local coordinates} on obj, replacing what was there."""
     ordered = {k: [float(c) for c in points[k]] for k in sorted(points, key=mpeg4.fdp_sort_key)}
     obj[prop] = json.dumps(ordered)
+
+
+def set_flagged(obj, flagged, points):
+    """Store the clicks a fit judged wrong ({FDP id: reason}) with where each was when judged (points:
+    the clicks it was judged from), replacing what was there; none: nothing stored."""
+    kept = {k: {"why": why, "at": [float(c) for c in points[k]]} for k, why in flagged.items() if k in points}
+    if kept:
+        obj[FLAGGED_PROP] = json.dumps(kept)
+    elif FLAGGED_PROP in obj:
+        del obj[FLAGGED_PROP]
+
+
+def get_flagged(obj):
+    """{FDP id: reason} of the clicks the last fit judged wrong that are still where they were judged
+    (a click moved or cleared since is judged no more)."""
+    if obj is None or FLAGGED_PROP not in obj:
+        return {}
+    try:
+        data = json.loads(obj[FLAGGED_PROP])
+    except (TypeError, ValueError):
+        return {}
+    pts = get_landmarks(obj)
+    return {k: v["why"] for k, v in data.items()
+            if k in pts and np.array_equal(pts[k], np.asarray(v.get("at", ()), dtype=np.float64))}
 
 
 def world_points(obj, points):

@@ -268,6 +268,7 @@ class SuggestRun(Run):
             report({"INFO"}, "every FDP a scanner sees is placed already: nothing to suggest")
             return {"FINISHED"}
         landmarks.set_landmarks(self.scan, proposed, prop=landmarks.SUGGESTED_PROP)
+        landmarks.set_flagged(self.scan, wrong, self.clicks.pts)      # marked in the list until moved
         msg = f"suggested {len(proposed)} FDPs: accept or reject them one by one, or all at once"
         if wrong:           # the fit they came from judged a click wrong: say which, before it is built on
             report({"WARNING"}, msg + "; the fit judges a click wrong: " + "; ".join(
@@ -537,7 +538,7 @@ class AdaptRun(Run):
         self.t0 = time.perf_counter()
         s = settings(context)
         self.scan, verts, tris = _scan_arrays(context)
-        pts = landmarks.get_landmarks(self.scan)
+        self.pts = pts = landmarks.get_landmarks(self.scan)
         opts = adapt_options(s, levels)
         tpl = template()
         # the scan as the last Calibrate prepared it, if that was this scan with these clicks and options:
@@ -588,6 +589,7 @@ class AdaptRun(Run):
             s.scan = self.scan
         s.report_json = json.dumps(result.report(), default=float)
         s.result_root = root
+        landmarks.set_flagged(self.scan, result.flagged, self.pts)     # marked in the list until moved
         if context.view_layer.objects.active is None:      # the replaced result was the active object
             context.view_layer.objects.active = root
         apply_display(s, context)          # heat map on, scan as wire, helpers as the toggles say

@@ -17,7 +17,8 @@ _draw_handles = []
 
 def _colours():
     return {"placed": (0.2, 0.5, 1.0, 1.0), "active": (1.0, 0.85, 0.1, 1.0),
-            "suggested": (1.0, 0.4, 0.9, 1.0), "template": (0.3, 1.0, 0.4, 1.0)}
+            "suggested": (1.0, 0.4, 0.9, 1.0), "template": (0.3, 1.0, 0.4, 1.0),
+            "flagged": (1.0, 0.15, 0.1, 1.0)}       # a click the last fit judged wrong (landmarks.get_flagged)
 
 
 def draw_landmarks_3d():
@@ -30,10 +31,11 @@ def draw_landmarks_3d():
     if s is None or s.scan is None:
         return
     col = _colours()
-    groups = {"placed": [], "active": [], "suggested": [], "template": []}
+    groups = {"placed": [], "active": [], "suggested": [], "template": [], "flagged": []}
     pts = landmarks.world_points(s.scan, landmarks.get_landmarks(s.scan))
+    flagged = landmarks.get_flagged(s.scan)
     for k, p in pts.items():
-        groups["active" if k == s.active_fdp else "placed"].append(p)
+        groups["active" if k == s.active_fdp else "flagged" if k in flagged else "placed"].append(p)
     groups["suggested"] = list(landmarks.world_points(
         s.scan, landmarks.get_landmarks(s.scan, landmarks.SUGGESTED_PROP)).values())
     if s.template_root is not None:
@@ -79,10 +81,12 @@ def draw_labels_2d():
         back = np.array(context.region_data.view_matrix.inverted().to_3x3().col[2])
         eye = centre + back * 10.0 * float(max(s.scan.dimensions))
     seen = landmarks.seen_from(s.scan, {k: local[k] for k in screen}, eye)
+    flagged = landmarks.get_flagged(s.scan)
     for k in landmarks.thinned({k: xy for k, xy in screen.items() if seen[k]}, first=(s.active_fdp,)):
         xy = screen[k]
         blf.size(0, 13 if k == s.active_fdp else 11)
-        blf.color(0, *(_colours()["active"] if k == s.active_fdp else (1, 1, 1, 1)))
+        blf.color(0, *(_colours()["active"] if k == s.active_fdp else _colours()["flagged"] if k in flagged
+                       else (1, 1, 1, 1)))
         blf.position(0, xy[0] + 6, xy[1] + 4, 0)
         blf.draw(0, k)
 

@@ -528,6 +528,27 @@ def test_suggest_refuses_clicks_in_another_unit_or_under_wrong_names(ui_scene, c
         capfd.readouterr()
         assert bpy.ops.headadapt.suggest_landmarks() == {"FINISHED"}
         said = capfd.readouterr()
+        # and the Landmarks panel marks that click, with the reason, until it is moved
+        from headadapt_addon.ui import panels
+
+        def chin_row():
+            layout = _Layout()
+            panels.draw_landmarks(layout, bpy.context)
+            labels = layout.labels()
+            at = next(i for i, (t, _i) in enumerate(labels) if t.startswith("2.10  "))
+            return labels[at][1], labels[at + 1][0]
+
+        icon, under = chin_row()
+        assert icon == "ERROR" and under.startswith("The fit judges it wrong: ") and " mm from where" in under
+        landmarks.set_landmarks(scan, eight)                    # the chin clicked right: no mark
+        assert chin_row()[0] == "CHECKMARK"
+        landmarks.set_landmarks(scan, slip)                     # back where it was judged: marked again
+        assert chin_row()[0] == "ERROR"
+        del scan[landmarks.FLAGGED_PROP]                        # Adapt marks it too
+        assert bpy.ops.headadapt.adapt(levels=1) == {"FINISHED"} and chin_row()[0] == "ERROR"
+        landmarks.set_landmarks(scan, eight)
+        assert bpy.ops.headadapt.suggest_landmarks() == {"FINISHED"}   # judged right: the mark is gone
+        assert landmarks.FLAGGED_PROP not in scan
     printed = (said.out + said.err).splitlines()
     assert any(s.startswith("Warning: suggested") and "judges a click wrong: FDP 2.10" in s for s in printed), printed
 
