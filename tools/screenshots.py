@@ -65,7 +65,7 @@ def setup():
         import numpy as np
 
         from headadapt_addon.core.adapt import calibration
-        from headadapt_addon.ui.operators import visible_template_fdps
+        from headadapt_addon.ui.state import visible_template_fdps
         clicks = meshio.read_landmarks(SAMPLE_DIR / "landmarks.json")
         sim, _info = calibration.calibrate(clicks, visible_template_fdps())
         m = np.array(sim.matrix4())[:3, :3]                                          # scan -> template

@@ -17,14 +17,20 @@ FLAGGED_PROP = "headadapt_flagged"       # the clicks the last fit judged wrong,
 GUIDED_ORDER = mpeg4.CLICKS_8 + tuple(k for k in mpeg4.FDPS if k not in mpeg4.CLICKS_8)
 
 
-def get_landmarks(obj, prop=PROP):
-    """{FDP id: (3,) local coordinates} stored on obj (empty dict when none)."""
+def _stored(obj, prop):
+    """The JSON object stored in obj's custom property prop ({} when none or unreadable)."""
     if obj is None or prop not in obj:
         return {}
     try:
         data = json.loads(obj[prop])
     except (TypeError, ValueError):
         return {}
+    return data if isinstance(data, dict) else {}
+
+
+def get_landmarks(obj, prop=PROP):
+    """{FDP id: (3,) local coordinates} stored on obj (empty dict when none)."""
+    data = _stored(obj, prop)
     return {k: np.asarray(v, dtype=np.float64) for k, v in sorted(data.items(), key=lambda kv: mpeg4.fdp_sort_key(kv[0]))}
 
 
@@ -47,13 +53,8 @@ def set_flagged(obj, flagged, points):
 def get_flagged(obj):
     """{FDP id: reason} of the clicks the last fit judged wrong that are still where they were judged
     (a click moved or cleared since is judged no more)."""
-    if obj is None or FLAGGED_PROP not in obj:
-        return {}
-    try:
-        data = json.loads(obj[FLAGGED_PROP])
-    except (TypeError, ValueError):
-        return {}
-    pts = get_landmarks(obj)
+    data = _stored(obj, FLAGGED_PROP)
+    pts = get_landmarks(obj) if data else {}
     return {k: v["why"] for k, v in data.items()
             if k in pts and np.array_equal(pts[k], np.asarray(v.get("at", ()), dtype=np.float64))}
 

@@ -71,7 +71,7 @@ def draw_scan(layout, context):
 def draw_landmarks(layout, context):
     s = _settings(context)
     pts = landmarks.get_landmarks(s.scan)
-    from .operators import landmark_problem
+    from .state import landmark_problem
     col = layout.column()
     col.enabled = s.scan is not None
     col.label(text=f"{len(pts)} of {len(mpeg4.FDPS)} FDPs placed")

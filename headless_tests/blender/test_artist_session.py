@@ -115,14 +115,14 @@ def test_the_panels_and_the_batch_build_the_same_options(ui_scene):
 
     from headadapt_addon import batch
     from headadapt_addon.core.adapt import AdaptOptions
-    from headadapt_addon.ui import operators
+    from headadapt_addon.ui import state
 
     s = bpy.context.scene.headadapt
     # the core's defaults, with the batch's spatial backend (Embree's rays where embreex is installed)
-    assert operators.adapt_options(s) == batch.adapt_options() == AdaptOptions(backend=batch.spatial_backend())
+    assert state.adapt_options(s) == batch.adapt_options() == AdaptOptions(backend=batch.spatial_backend())
     s.max_levels, s.calibration, s.drop_flagged = 2, "umeyama", False
-    assert operators.adapt_options(s) == batch.adapt_options(2, "umeyama", keep_flagged=True)
-    assert operators.adapt_options(s, levels=0).max_levels == 0
+    assert state.adapt_options(s) == batch.adapt_options(2, "umeyama", keep_flagged=True)
+    assert state.adapt_options(s, levels=0).max_levels == 0
 
 
 def test_landmark_file_with_nan_is_refused_by_the_operator(ui_scene, tmp_path):
@@ -328,7 +328,7 @@ def test_adapt_from_a_button_works_on_a_thread_and_esc_leaves_the_scene_as_it_wa
     import bpy
 
     from headadapt_addon.blender import landmarks
-    from headadapt_addon.ui import jobs, operators
+    from headadapt_addon.ui import jobs, operators, runs
 
     with bpy.context.temp_override(**ui_scene):
         ctx, s = bpy.context, bpy.context.scene.headadapt
@@ -338,7 +338,7 @@ def test_adapt_from_a_button_works_on_a_thread_and_esc_leaves_the_scene_as_it_wa
         reports = []
 
         def start(levels):
-            return _from_the_button(ctx, operators.AdaptRun(ctx, levels), operators.HEADADAPT_OT_adapt, reports)
+            return _from_the_button(ctx, runs.AdaptRun(ctx, levels), operators.HEADADAPT_OT_adapt, reports)
 
         op, event = start(3)
         assert event("MOUSEMOVE") == {"PASS_THROUGH"}             # the viewport stays usable
@@ -368,7 +368,7 @@ def test_a_running_adapt_greys_adapt_and_bake_and_a_scan_removed_meanwhile_chang
     import bpy
 
     from headadapt_addon.blender import landmarks
-    from headadapt_addon.ui import jobs, operators
+    from headadapt_addon.ui import jobs, operators, runs
 
     with bpy.context.temp_override(**ui_scene):
         ctx, s = bpy.context, bpy.context.scene.headadapt
@@ -378,7 +378,7 @@ def test_a_running_adapt_greys_adapt_and_bake_and_a_scan_removed_meanwhile_chang
         assert bpy.ops.headadapt.adapt.poll() and bpy.ops.headadapt.bake_expressions.poll()
         # a button's start, as Modal.invoke makes it (headless, bpy.ops runs execute: waited for; the
         # real window's invoke is test_blender_binary's)
-        started = operators.AdaptRun(ctx, 1)
+        started = runs.AdaptRun(ctx, 1)
         jobs._RUNNING.append(started)
         started.job.start()
         assert jobs.busy() == "Adapt"
@@ -391,7 +391,7 @@ def test_a_running_adapt_greys_adapt_and_bake_and_a_scan_removed_meanwhile_chang
         # a scan removed while the run works: nothing written, said so
         before = sorted(o.name for o in bpy.data.objects)
         reports = []
-        op, event = _from_the_button(ctx, operators.AdaptRun(ctx, 1), operators.HEADADAPT_OT_adapt, reports)
+        op, event = _from_the_button(ctx, runs.AdaptRun(ctx, 1), operators.HEADADAPT_OT_adapt, reports)
         bpy.data.objects.remove(scan)
         answer = _to_the_end(event)
         assert answer == {"CANCELLED"} and reports[-1][0] == {"ERROR"} and "removed while it ran" in reports[-1][1]
@@ -409,7 +409,7 @@ def test_suggest_from_a_button_works_on_a_thread_esc_cancels_and_a_click_moved_m
 
     from headadapt_addon.blender import landmarks
     from headadapt_addon.core import mpeg4
-    from headadapt_addon.ui import jobs, operators
+    from headadapt_addon.ui import jobs, operators, runs
 
     clicks = meshio.read_landmarks(SAMPLE_DIR / "landmarks.json")
     eight = {k: clicks[k] for k in mpeg4.CLICKS_8}
@@ -421,7 +421,7 @@ def test_suggest_from_a_button_works_on_a_thread_esc_cancels_and_a_click_moved_m
 
         def start():
             operators._forget_kept()                 # judged anew each time: the run is long enough to watch
-            return _from_the_button(ctx, operators.SuggestRun(ctx), operators.HEADADAPT_OT_suggest_landmarks, reports)
+            return _from_the_button(ctx, runs.SuggestRun(ctx), operators.HEADADAPT_OT_suggest_landmarks, reports)
 
         op, event = start()
         assert jobs.busy() == "Suggest the Rest"
@@ -456,7 +456,7 @@ def test_bake_reports_progress_and_esc_leaves_no_shape_keys(ui_scene, monkeypatc
 
     import bpy
 
-    from headadapt_addon.ui import jobs, operators
+    from headadapt_addon.ui import jobs, operators, runs
 
     seen = []
     original = jobs.show_progress
@@ -473,7 +473,7 @@ def test_bake_reports_progress_and_esc_leaves_no_shape_keys(ui_scene, monkeypatc
         skin = next(o for o in root.children_recursive if o.get("headadapt_part") == "skin")
         # from a button (modal, stand-in events): Esc while it bakes leaves no key behind
         reports = []
-        op, event = _from_the_button(ctx, operators.BakeRun(root, ("expression",), True),
+        op, event = _from_the_button(ctx, runs.BakeRun(root, ("expression",), True),
                                      operators.HEADADAPT_OT_bake_expressions, reports)
         run = op._run
         assert _progress_shown(event, s)
