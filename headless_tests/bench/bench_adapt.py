@@ -11,6 +11,7 @@
     ./ha bench adapt --seeds 600-615 --click-noise-mm 4   # sloppier people (and 1.5x that along lid and lip lines)
     ./ha bench adapt --seeds 0-11 --clicks 8 --per-marker   # each held-out FDP's error, and the RMS without it
     ./ha bench adapt --seeds 0-11 --clicks 8,8+   # the 8 clicks, then with every suggestion accepted
+    ./ha bench adapt --seeds 0-11 --clicks 8 --common   # the error every head shares against each head's own
 
 Seeds 100-107 are the REPORTING set (the default): figures quoted anywhere come from them. Seeds
 0-49 may be used for tuning (parameters, thresholds, ideas); never tune on 100-107, or the figures
@@ -392,6 +393,51 @@ def regions(args):
                       + _along_by_region(tpl, head, out["nricp_amberg"][0], normal, seen), flush=True)
 
 
+def common(args):
+    """How much of the correspondence error is the same on every head: per method and click set, each
+    seen-face vertex's error (template frame, mm) averaged over the heads that see it (the field they
+    share) against what is left of each head's own, RMS over the seen face; and the shared field by
+    region (its RMS and mean vector). A field every method shares, and that heads whose truth is the
+    template itself (--identity 0) do not have, is the heads' identities moving skin along itself the
+    same way on average: what no surface shows."""
+    tpl = load_template()
+    face = testheads.face_mask(tpl)
+    for name in args.clicks.split(","):
+        errs, seen_all = {}, []
+        for seed in args.seeds:
+            head = testheads.make_head(seed, style=args.style, **_head_args(args))
+            clicks = set_clicks(tpl, head, name)
+            out, _res = run_methods(tpl, head.scan_verts, head.scan_tris, clicks, markers=head.markers,
+                                    nricp=not args.no_nricp)
+            scale, rot, _t = head.similarity
+            for method in ("headadapt", "nricp_amberg"):
+                if out.get(method, (None,))[0] is not None:
+                    errs.setdefault(method, []).append((out[method][0] - head.true_template) @ rot / scale * 1000)
+            seen_all.append(face & head.true_on_scan)
+        seen = np.array(seen_all)
+        count = seen.sum(axis=0)
+        often = count >= max(3, len(args.seeds) // 2)          # the shared field where enough heads see it
+        print(f"\n== {name} clicks, seeds {args.seeds[0]}-{args.seeds[-1]} ({len(args.seeds)} heads): the error every "
+              f"head shares, mm of the true head, seen face, template frame (x left, y back, z up) ==")
+        for method, per_head in errs.items():
+            if len(per_head) != len(args.seeds):
+                print(f"{method}: failed on a head, left out")
+                continue
+            e = np.array(per_head)
+            shared = (e * seen[..., None]).sum(axis=0) / np.maximum(count, 1)[:, None]
+            total = np.sqrt((np.sum(e ** 2, axis=2) * seen).sum() / seen.sum())
+            own = np.sqrt((np.sum((e - shared) ** 2, axis=2) * seen).sum() / seen.sum())
+            # the mean over n heads keeps about own / sqrt(n - 1) of their own errors: said beside it
+            print(f"{method}: correspondence RMS {total:.2f}; shared by every head {np.sqrt(np.mean(np.sum(shared[often] ** 2, axis=1))):.2f} "
+                  f"(of it about {own / np.sqrt(max(len(args.seeds) - 1, 1)):.2f} the heads' own, not averaged away); "
+                  f"each head's own {own:.2f}")
+            for region in REGIONS:
+                sel = often & tpl.region_mask(region)
+                vec = shared[sel].mean(axis=0)
+                print(f"   {region:>9s} shared {np.sqrt(np.mean(np.sum(shared[sel] ** 2, axis=1))):5.2f}, on average "
+                      f"({vec[0]:+.2f}, {vec[1]:+.2f}, {vec[2]:+.2f})")
+
+
 def big():
     """Time HeadAdapt on a ~200k-vertex head (first, before the peers load the machine)."""
     tpl = load_template()
@@ -431,6 +477,8 @@ def main(argv=None):
     parser.add_argument("--regions", action="store_true",
                         help="where the error lies: along the skin by face region, after each level (and nricp's)")
     parser.add_argument("--no-nricp", action="store_true")
+    parser.add_argument("--common", action="store_true",
+                        help="how much of the error every head shares (the mean field over the heads), by region")
     parser.add_argument("--per-marker", action="store_true",
                         help="also each held-out FDP's error per method, and the marker RMS without it")
     parser.add_argument("--identity", type=float, default=None,
@@ -457,6 +505,8 @@ def main(argv=None):
         real(args)
     elif args.regions:
         regions(args)
+    elif args.common:
+        common(args)
     else:
         synthetic(args)
 
