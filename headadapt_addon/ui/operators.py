@@ -189,49 +189,54 @@ def _take_suggestions(scan, names):
     return taken
 
 
-class HEADADAPT_OT_accept_suggestions(_Base, bpy.types.Operator):
+class _Suggestions(_Base):
+    """Accept or Reject Suggestions: one suggestion (the operator's fdp) or, fdp empty, all of them."""
+
+    @classmethod
+    def poll(cls, context):
+        return poll_with_message(cls, _suggestions_problem(context))
+
+    def take(self, context):
+        """(the scan, {name: point} of the suggestions taken off it), or (None, the problem)."""
+        problem = _suggestions_problem(context, self.fdp)
+        if problem:
+            return None, problem
+        scan = settings(context).scan
+        names = [self.fdp] if self.fdp else list(landmarks.get_landmarks(scan, landmarks.SUGGESTED_PROP))
+        return scan, _take_suggestions(scan, names)
+
+    def named(self, taken):
+        return ", ".join(taken) if self.fdp else f"{len(taken)} suggestions"
+
+
+class HEADADAPT_OT_accept_suggestions(_Suggestions, bpy.types.Operator):
     """Accept suggested FDPs as landmarks: one (fdp), or all of them"""
     bl_idname = "headadapt.accept_suggestions"
     bl_label = "Accept Suggestions"
     fdp: bpy.props.StringProperty(name="FDP", default="", description="The suggestion to accept (empty: all)")
 
-    @classmethod
-    def poll(cls, context):
-        return poll_with_message(cls, _suggestions_problem(context))
-
     def execute(self, context):
-        problem = _suggestions_problem(context, self.fdp)
-        if problem:
-            return self.fail(problem)
-        scan = settings(context).scan
-        names = [self.fdp] if self.fdp else list(landmarks.get_landmarks(scan, landmarks.SUGGESTED_PROP))
+        scan, taken = self.take(context)
+        if scan is None:
+            return self.fail(taken)
         pts = landmarks.get_landmarks(scan)
-        taken = _take_suggestions(scan, names)
         pts.update({k: v for k, v in taken.items() if k not in pts})
         landmarks.set_landmarks(scan, pts)
-        self.report({"INFO"}, f"accepted {', '.join(taken) if self.fdp else f'{len(taken)} suggestions'}: "
-                              f"{len(pts)} FDPs placed")
+        self.report({"INFO"}, f"accepted {self.named(taken)}: {len(pts)} FDPs placed")
         return {"FINISHED"}
 
 
-class HEADADAPT_OT_reject_suggestions(_Base, bpy.types.Operator):
+class HEADADAPT_OT_reject_suggestions(_Suggestions, bpy.types.Operator):
     """Reject suggested FDPs: one (fdp), or all of them; placed landmarks are not touched"""
     bl_idname = "headadapt.reject_suggestions"
     bl_label = "Reject Suggestions"
     fdp: bpy.props.StringProperty(name="FDP", default="", description="The suggestion to reject (empty: all)")
 
-    @classmethod
-    def poll(cls, context):
-        return poll_with_message(cls, _suggestions_problem(context))
-
     def execute(self, context):
-        problem = _suggestions_problem(context, self.fdp)
-        if problem:
-            return self.fail(problem)
-        scan = settings(context).scan
-        names = [self.fdp] if self.fdp else list(landmarks.get_landmarks(scan, landmarks.SUGGESTED_PROP))
-        taken = _take_suggestions(scan, names)
-        self.report({"INFO"}, f"rejected {', '.join(taken) if self.fdp else f'{len(taken)} suggestions'}")
+        scan, taken = self.take(context)
+        if scan is None:
+            return self.fail(taken)
+        self.report({"INFO"}, f"rejected {self.named(taken)}")
         return {"FINISHED"}
 
 

@@ -60,6 +60,22 @@ def _to_the_end(event):
     return answer
 
 
+@pytest.fixture
+def progress(monkeypatch):
+    """Every progress step the long operators show, as (fraction, message, the scene's progress text)."""
+    from headadapt_addon.ui import jobs
+
+    seen = []
+    original = jobs.show_progress
+
+    def record(context, fraction, message):
+        original(context, fraction, message)
+        seen.append((fraction, message, context.scene.headadapt.progress_text))
+
+    monkeypatch.setattr(jobs, "show_progress", record)
+    return seen
+
+
 def _greyed_because(op):
     """The poll message of a greyed operator (bpy.ops raises it), or None when it can run."""
     if op.poll():
@@ -279,20 +295,12 @@ def test_report_table_reads_row_by_row_with_units(ui_scene):
 
 
 @pytest.mark.slow
-def test_adapt_reports_progress_and_replaces_its_last_result(ui_scene, monkeypatch):
+def test_adapt_reports_progress_and_replaces_its_last_result(ui_scene, progress):
     import bpy
 
     from headadapt_addon.blender import landmarks
-    from headadapt_addon.ui import jobs
 
-    seen = []
-    original = jobs.show_progress
-
-    def record(context, fraction, message):
-        original(context, fraction, message)
-        seen.append((fraction, message, context.scene.headadapt.progress_text))
-
-    monkeypatch.setattr(jobs, "show_progress", record)
+    seen = progress
     with bpy.context.temp_override(**ui_scene):
         scan = _sample_scan("Anna")
         landmarks.set_landmarks(scan, meshio.read_landmarks(SAMPLE_DIR / "landmarks.json"))
@@ -452,20 +460,13 @@ def test_suggest_from_a_button_works_on_a_thread_esc_cancels_and_a_click_moved_m
 
 
 @pytest.mark.slow
-def test_bake_reports_progress_and_esc_leaves_no_shape_keys(ui_scene, monkeypatch):
+def test_bake_reports_progress_and_esc_leaves_no_shape_keys(ui_scene, progress):
 
     import bpy
 
     from headadapt_addon.ui import jobs, operators, runs
 
-    seen = []
-    original = jobs.show_progress
-
-    def record(context, fraction, message):
-        original(context, fraction, message)
-        seen.append((fraction, message, context.scene.headadapt.progress_text))
-
-    monkeypatch.setattr(jobs, "show_progress", record)
+    seen = progress
     with bpy.context.temp_override(**ui_scene):
         ctx, s = bpy.context, bpy.context.scene.headadapt
         assert bpy.ops.headadapt.add_template() == {"FINISHED"}
