@@ -121,6 +121,20 @@ CALIBRATION_FDPS = ("2.1", "11.1", "3.7", "3.12", "8.3", "8.4", "10.9", "10.10")
 CLICKS_8 = ("3.7", "3.11", "3.8", "3.12", "8.3", "8.4", "9.3", "2.10")
 CLICKS_11 = CLICKS_8 + ("9.15", "8.1", "8.2")
 
+# Where to click the FDPs people misplace, said where the picker asks for them. The eye and lip
+# corners are where the template puts them (the canthi, the commissure: test_template.py); the
+# subnasale hides under the nose in a front view, and the real scans' clicks of it, picked on front
+# renders, lay on the nose's underside 8 and 14 mm in front of it (docs/MEASUREMENTS.md, stop 60).
+_EYE = "where the upper and lower lids meet, at the {} end of the eye's opening"
+_LIP = "where the slit between the lips ends, not on the cheek beyond it"
+CLICK_HINTS = {
+    "3.7": _EYE.format("outer"), "3.12": _EYE.format("outer"),
+    "3.11": _EYE.format("inner"), "3.8": _EYE.format("inner"),
+    "8.3": _LIP, "8.4": _LIP,
+    "9.15": "in the corner where the nose's underside meets the upper lip, not on the nose's underside "
+            "(look from below the nose to see it)",
+}
+
 
 def fdp_sort_key(name: str) -> tuple[int, int]:
     """Sort key putting FDP ids in the standard's order ("2.1" < "2.10" < "3.1")."""

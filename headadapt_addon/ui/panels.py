@@ -82,6 +82,8 @@ def draw_landmarks(layout, context):
         _wrapped(col, context, problem[:1].upper() + problem[1:], "ERROR")
     col.prop(s, "active_fdp")
     col.label(text=mpeg4.FDPS[s.active_fdp].label)
+    if s.active_fdp in mpeg4.CLICK_HINTS:          # where people misplace it: said before they click
+        _wrapped(col, context, "Click " + mpeg4.CLICK_HINTS[s.active_fdp], "INFO")
     col.operator("headadapt.pick_landmarks", icon="RESTRICT_SELECT_OFF")
     row = col.row(align=True)
     row.operator("headadapt.import_landmarks", icon="IMPORT")

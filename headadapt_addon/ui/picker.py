@@ -155,7 +155,8 @@ class HEADADAPT_OT_pick_landmarks(bpy.types.Operator):
     def status(self, context):
         """The status bar says which FDP the next click places (after every click, not only the first)."""
         k = context.scene.headadapt.active_fdp
-        context.workspace.status_text_set(f"HeadAdapt: click to place {k} ({mpeg4.FDPS[k].label}), Ctrl-click "
+        hint = f" {mpeg4.CLICK_HINTS[k]}" if k in mpeg4.CLICK_HINTS else ""
+        context.workspace.status_text_set(f"HeadAdapt: click to place {k} ({mpeg4.FDPS[k].label}){hint}, Ctrl-click "
                                           "removes, Ctrl-Z undoes a click, M mirrors the partner, "
                                           "Esc/right-click ends")
 

@@ -939,6 +939,19 @@ def test_landmarking_guides_the_8_clicks_first_and_suggestions_one_by_one(ui_sce
         layout = _Layout()
         panels.draw_landmarks(layout, bpy.context)
         assert sum(1 for t, _i in layout.labels() if "  " in t) == len(mpeg4.FDPS)
+        # where people misplace a point, the panel says where to click it before they do: the
+        # subnasale, which the real scans' clicks put on the nose's underside
+        for fdp, hint in (("9.15", "Click in the corner where the nose's underside meets the upper lip"),
+                          ("8.3", "Click where the slit between the lips ends"), ("9.3", None)):
+            s.active_fdp = fdp
+            layout = _Layout()
+            panels.draw_landmarks(layout, bpy.context)
+            shown = [(t, i) for t, i in layout.labels() if t.startswith("Click ")]
+            assert (shown[0][0].startswith(hint[:20]) and shown[0][1] == "INFO") if hint else not shown, shown
+            if hint:
+                words = " ".join(t for t, _i in layout.labels()[layout.labels().index(shown[0]):][:6])
+                assert hint in words, words
+        s.active_fdp = mpeg4.CLICKS_8[0]
         # the 8 clicks, then the suggestions
         landmarks.set_landmarks(scan, {k: clicks[k] for k in mpeg4.CLICKS_8})
         assert bpy.ops.headadapt.suggest_landmarks() == {"FINISHED"}
