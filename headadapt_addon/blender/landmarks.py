@@ -50,11 +50,11 @@ def set_flagged(obj, flagged, points):
         del obj[FLAGGED_PROP]
 
 
-def get_flagged(obj):
+def get_flagged(obj, points=None):
     """{FDP id: reason} of the clicks the last fit judged wrong that are still where they were judged
-    (a click moved or cleared since is judged no more)."""
+    (a click moved or cleared since is judged no more). points: obj's landmarks, if read already."""
     data = _stored(obj, FLAGGED_PROP)
-    pts = get_landmarks(obj) if data else {}
+    pts = (get_landmarks(obj) if points is None else points) if data else {}
     return {k: v["why"] for k, v in data.items()
             if k in pts and np.array_equal(pts[k], np.asarray(v.get("at", ()), dtype=np.float64))}
 

@@ -94,9 +94,9 @@ def draw_landmarks(layout, context):
     picture = reference_preview()
     if picture is not None and sum(k in pts for k in mpeg4.CLICKS_8) < 8:
         box.template_icon(icon_value=picture.icon_id, scale=7.0)
-    flagged = landmarks.get_flagged(s.scan)
+    flagged = landmarks.get_flagged(s.scan, pts)
     for name in mpeg4.CLICKS_8:
-        _fdp_row(box, name, pts, s, flagged, context)
+        _fdp_row(box, context, name, pts, flagged)
     row = col.row(align=True)
     row.operator("headadapt.suggest_landmarks", icon="LIGHT")
     _progress(col, context, "Suggest the Rest")
@@ -120,24 +120,25 @@ def draw_landmarks(layout, context):
     if s.show_all_fdps:
         box = col.box().column(align=True)
         for name in others:
-            _fdp_row(box, name, pts, s, flagged, context)
+            _fdp_row(box, context, name, pts, flagged)
     elif any(k in flagged for k in others):     # folded away, but a click there needs looking at
         box = col.box().column(align=True)
         for name in others:
             if name in flagged:
-                _fdp_row(box, name, pts, s, flagged, context)
+                _fdp_row(box, context, name, pts, flagged)
 
 
-def _fdp_row(layout, name, pts, s, flagged=None, context=None):
+def _fdp_row(layout, context, name, pts, flagged):
     """One FDP's row: placed (a check), the one the picker places next, or not yet; a click the last
     fit (Adapt, Suggest the Rest) judged wrong, and not moved since, is marked with the fit's reason."""
     row = layout.row(align=True)
-    why = (flagged or {}).get(name)
-    mark = ("ERROR" if why else "CHECKMARK") if name in pts else ("RADIOBUT_ON" if name == s.active_fdp else "BLANK1")
+    why = flagged.get(name)
+    active = _settings(context).active_fdp
+    mark = ("ERROR" if why else "CHECKMARK") if name in pts else ("RADIOBUT_ON" if name == active else "BLANK1")
     row.label(text=f"{name}  {mpeg4.FDPS[name].label}", icon=mark)
     if name in pts:
         row.operator("headadapt.clear_landmark", text="", icon="X").fdp = name
-    if why and context is not None:
+    if why:
         _wrapped(layout, context, f"The fit judges it wrong: {why}; move it or clear it", "BLANK1")
 
 

@@ -32,8 +32,9 @@ def draw_landmarks_3d():
         return
     col = _colours()
     groups = {"placed": [], "active": [], "suggested": [], "template": [], "flagged": []}
-    pts = landmarks.world_points(s.scan, landmarks.get_landmarks(s.scan))
-    flagged = landmarks.get_flagged(s.scan)
+    local = landmarks.get_landmarks(s.scan)
+    pts = landmarks.world_points(s.scan, local)
+    flagged = landmarks.get_flagged(s.scan, local)
     for k, p in pts.items():
         groups["active" if k == s.active_fdp else "flagged" if k in flagged else "placed"].append(p)
     groups["suggested"] = list(landmarks.world_points(
@@ -81,7 +82,7 @@ def draw_labels_2d():
         back = np.array(context.region_data.view_matrix.inverted().to_3x3().col[2])
         eye = centre + back * 10.0 * float(max(s.scan.dimensions))
     seen = landmarks.seen_from(s.scan, {k: local[k] for k in screen}, eye)
-    flagged = landmarks.get_flagged(s.scan)
+    flagged = landmarks.get_flagged(s.scan, local)
     for k in landmarks.thinned({k: xy for k, xy in screen.items() if seen[k]}, first=(s.active_fdp,)):
         xy = screen[k]
         blf.size(0, 13 if k == s.active_fdp else 11)
