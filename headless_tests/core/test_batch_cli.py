@@ -296,6 +296,35 @@ def test_clicks_in_another_unit_exit_2_naming_the_landmark_file(tmp_path, inputs
     assert third.returncode == 2 and "refusing to replace" in third.stderr
 
 
+@pytest.mark.parametrize("case, expected", [
+    ("another frame", " mm outside the scan's bounding box after calibration: markers must be measured on this scan"),
+    ("another unit", "The markers are about 10^3 times larger than the scan: they are in another unit"),
+    ("a misspelt name", 'marker "glabela" is neither an FDP nor one of the template\'s markers (glabella, nasion, '),
+])
+def test_markers_in_another_frame_unit_or_name_exit_2_naming_the_landmark_file(tmp_path, inputs, case, expected):
+    """Held-out markers choose the level by their error (E = alpha E_d + beta E_m, sec 5). The sample's
+    markers left where they were while its scan and clicks were turned upside down chose level 0 (marker
+    RMS 1030 mm), and the run ended "not trustworthy, the fit did not reach the scan", exit 3; a misspelt
+    marker was left out of the figure unsaid. Now such a file is bad input: one line names it and the
+    marker, and nothing is fitted."""
+    scan, marks = inputs
+    data = json.loads(marks.read_text())
+    markers = data["markers"]
+    if case == "another frame":
+        markers = {k: [p[0], p[1], p[2] + 1000.0] for k, p in markers.items()}
+    elif case == "another unit":
+        markers = {k: [1000 * c for c in p] for k, p in markers.items()}
+    else:
+        markers = {("glabela" if k == "glabella" else k): p for k, p in markers.items()}
+    bad = tmp_path / "in" / "markers_bad.json"
+    bad.write_text(json.dumps({**data, "markers": markers}))
+    line = one_error_line(batch("adapt", "--scan", scan, "--landmarks", bad, "--out", tmp_path / "out"))
+    assert line.startswith(f"headadapt: error: {bad}: "), line
+    assert expected in line and (case != "another frame" or ": marker glabella is 9" in line), line
+    assert not (tmp_path / "out" / "adapted_head.obj").exists()
+    assert json.loads((tmp_path / "out" / "report.json").read_text())["status"] == "failed"
+
+
 def test_levels_out_of_range_are_refused_before_anything_is_read(tmp_path, inputs):
     scan, marks = inputs
     proc = batch("adapt", "--scan", scan, "--landmarks", marks, "--out", tmp_path / "out", "--levels", "9")

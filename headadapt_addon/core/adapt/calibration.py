@@ -264,10 +264,10 @@ def validate_landmarks(points: dict, need: tuple = (), what: str = "scan") -> di
     return out
 
 
-def unit_hint(verts: np.ndarray, points: dict[str, np.ndarray]) -> str:
+def unit_hint(verts: np.ndarray, points: dict[str, np.ndarray], what: str = "landmarks") -> str:
     """A sentence naming a unit mismatch when the clicks' spread and the scan's size differ by more
     than a factor of 5 (clicks span about 2/3 of a head scan), else ''. Any frame, both in the same;
-    verts: the scan's vertices, or its box's corners."""
+    verts: the scan's vertices, or its box's corners; what: the points' name in the sentence."""
     p = np.array(list(points.values()), dtype=float).reshape(-1, 3)
     if len(p) < 2 or len(verts) == 0 or not np.isfinite(p).all():
         return ""
@@ -276,5 +276,5 @@ def unit_hint(verts: np.ndarray, points: dict[str, np.ndarray]) -> str:
     if 0.2 < ratio < 5.0:
         return ""
     power = round(float(np.log10(np.clip(ratio, 1e-300, 1e300))))
-    return (f"the landmarks are about 10^{abs(power)} times {'smaller' if power > 0 else 'larger'} than the "
+    return (f"the {what} are about 10^{abs(power)} times {'smaller' if power > 0 else 'larger'} than the "
             "scan: they are in another unit (mm, cm, m?) or belong to another scan")

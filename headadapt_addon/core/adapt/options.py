@@ -35,6 +35,9 @@ class AdaptOptions:
                                         # a coarse fit errs by ~5; a slip of the hand is 20)
     confirm_factor: float = 3.0         # ... or this x the clicks' median distance there, if larger
     off_surface_mm: float = 12.0        # an FDP farther than this from the scan surface is an error
+    marker_reach_mm: float = 100.0      # a held-out marker farther than this outside the scan's box is an error
+                                        # (another frame or unit; a marker may lie in a hole at the scan's edge:
+                                        # a neck marker on a scan cut at the chin)
     curvature_points: int = 150         # scan curvature points at level 1 (doubles per level)
     sample_spacing: float = 0.016       # spacing of the CSRBF centres at level 1 (halves per level), m
     min_sample_spacing: float = 0.002   # finest centre spacing, m
