@@ -1,8 +1,11 @@
 """Write an adaptation result as a .blend (batch job): scan, adapted template hierarchy, landmarks, report."""
 
+import contextlib
 import json
 import os
 import pathlib
+import re
+import sys
 import tempfile
 import time
 
@@ -171,6 +174,54 @@ def build_result_scene(tpl, result, scan_verts, scan_tris, landmarks, report, sc
     return root
 
 
+# Blender's own lines a batch log has no use for: each preview view's "Saved: '.../.preview.x/view00.png'",
+# the .blend's "Info: Saved copy as ".head.x.blend"" (both HeadAdapt's temporary files, renamed after), and
+# a headless GPU's context probes ("EGL Error (0x3009): EGL_BAD_MATCH ...", three a run, the render fine)
+CHATTER = re.compile(r"""\| Saved: '.*[/\\]\.[^/\\]+[/\\]view\d\d\.png'$|^Info: Saved copy as "\.[^"]*\.blend"$"""
+                     r"|^EGL Error \(0x[0-9A-Fa-f]+\): ")
+
+
+@contextlib.contextmanager
+def without_chatter(drop=CHATTER):
+    """Blender's lines written to the process's stdout and stderr during the block (its C code writes to
+    the file descriptors) are held, and passed on after it to where they were going, but those matching
+    drop; if the block raises, every line is passed on. Where the descriptors cannot be swapped (none
+    open, Windows' C runtime) the block runs as it is."""
+    try:
+        import ctypes
+        flush = ctypes.CDLL(None).fflush if os.name == "posix" else None
+        saved = {fd: os.dup(fd) for fd in (1, 2)} if flush is not None else None
+    except (OSError, AttributeError):
+        saved = None
+    if saved is None:
+        yield
+        return
+    held = {fd: tempfile.TemporaryFile() for fd in saved}
+
+    def swap(to):
+        sys.stdout.flush()
+        sys.stderr.flush()
+        flush(None)                                     # C's own buffers, to where they were written
+        for fd in saved:
+            os.dup2(to[fd], fd)
+
+    swap({fd: f.fileno() for fd, f in held.items()})
+    ok = False
+    try:
+        yield
+        ok = True
+    finally:
+        swap(saved)
+        for fd, f in held.items():
+            os.close(saved[fd])
+            f.seek(0)
+            lines = f.read().decode("utf-8", "replace").splitlines(keepends=True)
+            f.close()
+            kept = "".join(line for line in lines if not (ok and drop.search(line.rstrip("\r\n"))))
+            if kept:
+                os.write(fd, kept.encode("utf-8"))
+
+
 def write_blend(path, tpl, result, scan_verts, scan_tris, landmarks, report, bake=True, progress=None, anatomy=None):
     """Write a fresh .blend with the scan, the adapted head, a camera and a light, atomically (temp
     file, then rename); progress(fraction, key name) while baking; anatomy: the transfer's, if made."""
@@ -187,7 +238,7 @@ def write_blend(path, tpl, result, scan_verts, scan_tris, landmarks, report, bak
         build_result_scene(tpl, result, scan_verts, scan_tris, landmarks, report, bake=bake, progress=progress,
                            anatomy=anatomy)
         pathlib.Path(tmp).unlink()          # mkstemp only reserved the name: Blender would back up the empty file
-        with held_ctrl_c():
+        with held_ctrl_c(), without_chatter():
             bpy.ops.wm.save_as_mainfile(filepath=tmp, copy=True, compress=True)
         os.chmod(tmp, 0o644)
         os.replace(tmp, path)
@@ -279,7 +330,8 @@ def render_preview(path, root, scan_obj, px=PREVIEW_VIEW_PX):
                 scan_obj.hide_render, scan_obj.display_type = what != "scan", "SOLID"
                 shading.color_type = colour
                 sc.render.filepath = os.path.join(tmp_dir, f"view{i}{j}.png")
-                bpy.ops.render.render(write_still=True)
+                with without_chatter():
+                    bpy.ops.render.render(write_still=True)
                 img = bpy.data.images.load(sc.render.filepath)
                 pixels = np.empty(px * px * 4, dtype=np.float32)
                 img.pixels.foreach_get(pixels)

@@ -705,7 +705,10 @@ def test_fdp_labels_are_depth_tested_and_thinned(ui_scene):
 def test_batch_preview_renders_the_scan_beside_the_head_front_and_side(tmp_path):
     """--preview out.png: one PNG (2 x 640 by 2 x 640), written atomically: a row per view (front, side),
     the scan on the left in plain grey, the head on the right with the heat map's blue and red; no
-    quarter blank; a name that is not .png is refused (exit 2)."""
+    quarter blank; a name that is not .png is refused (exit 2). The log is HeadAdapt's own: Blender's
+    lines on its temporary files (each view's "Saved: '.../.preview.x/view00.png'", the .blend's "Saved
+    copy as") and a headless GPU's context probes ("EGL Error (0x3009)", three a run, the picture
+    fine) are left out."""
     import struct
     import subprocess
     import sys
@@ -715,8 +718,13 @@ def test_batch_preview_renders_the_scan_beside_the_head_front_and_side(tmp_path)
     png = tmp_path / "pics" / "preview.png"
     cmd = [sys.executable, "-m", "headadapt_addon.batch", "adapt", "--scan", str(SAMPLE_DIR / "scan.ply"),
            "--landmarks", str(SAMPLE_DIR / "landmarks.json"), "--out", str(tmp_path / "o"), "--levels", "1"]
-    proc = subprocess.run(cmd + ["--preview", str(png)], capture_output=True, text=True)
+    proc = subprocess.run(cmd + ["--preview", str(png), "--blend", str(tmp_path / "o" / "head.blend")],
+                          capture_output=True, text=True)
     assert proc.returncode == 0, proc.stderr
+    log = proc.stdout + proc.stderr
+    assert "Saved" not in log and "EGL" not in log and ".preview." not in log, log
+    assert f"headadapt: preview (scan beside the head with its heat map, front and side) in {png}" in proc.stdout
+    assert (tmp_path / "o" / "head.blend").stat().st_size > 0
     assert sorted(p.name for p in png.parent.iterdir()) == ["preview.png"]      # no temporary left behind
     head = png.read_bytes()[:24]
     assert head[:8] == b"\x89PNG\r\n\x1a\n" and struct.unpack(">II", head[16:24]) == (1280, 1280)
@@ -736,6 +744,31 @@ def test_batch_preview_renders_the_scan_beside_the_head_front_and_side(tmp_path)
         assert rgb[scan].std() > 0.05 and rgb[adapted].std() > 0.05
     bad = subprocess.run(cmd + ["--overwrite", "--preview", str(tmp_path / "p.jpg")], capture_output=True, text=True)
     assert bad.returncode == 2 and bad.stderr.strip().count("\n") == 0 and "name a .png file" in bad.stderr
+
+
+def test_blender_s_chatter_is_left_out_and_everything_else_passed_on(capfd):
+    """blendout.without_chatter: at the file descriptors (where Blender's C code writes), the lines on
+    HeadAdapt's temporary files and the GPU's probes are dropped, any other line is passed on to the
+    stream it was written to, in order; when the block raises, nothing is dropped."""
+    import os
+
+    from headadapt_addon.blender import blendout
+
+    chatter = (b"00:01.611  render           | Saved: '/w/out/.preview.tc2ys9kt/view00.png'\n",
+               b'Info: Saved copy as ".head.pqccve4m.blend"\n',
+               b"EGL Error (0x3009): EGL_BAD_MATCH: Arguments are inconsistent.\n")
+    kept = (b"00:01.611  render           | Saved: '/w/out/mine.png'\n", b"Error: Not freed memory blocks: 2\n")
+    capfd.readouterr()
+    with blendout.without_chatter():
+        for line in chatter[:2] + kept[:1]:
+            os.write(1, line)
+        os.write(2, chatter[2] + kept[1])
+    out, err = capfd.readouterr()
+    assert out == kept[0].decode() and err == kept[1].decode(), (out, err)
+    with pytest.raises(ValueError), blendout.without_chatter():
+        os.write(2, chatter[2])
+        raise ValueError("the render failed")
+    assert capfd.readouterr().err == chatter[2].decode()
 
 
 @pytest.mark.slow
