@@ -5,7 +5,6 @@ results go to new objects in the "HeadAdapt result" collection. Every operator t
 scene is undoable.
 """
 
-import json
 import pathlib
 
 import bpy
@@ -19,8 +18,8 @@ from ..core.exceptions import HeadAdaptError
 from . import jobs, kept
 from .jobs import Modal
 from .props import apply_display
-from .runs import AdaptRun, BakeRun, SuggestRun, check_clicks, match_scene_unit
-from .state import head_size_mm, landmark_problem, scan_problem, settings, template
+from .runs import AdaptRun, BakeRun, CalibrateRun, SuggestRun, match_scene_unit
+from .state import landmark_problem, scan_problem, settings, template
 
 
 def poll_with_message(cls, problem):
@@ -271,8 +270,8 @@ class HEADADAPT_OT_load_sample_scan(_Base, bpy.types.Operator):
         return {"FINISHED"}
 
 
-class HEADADAPT_OT_calibrate(_Base, bpy.types.Operator):
-    """Compute the similarity that brings the scan into the template frame (paper sec 3.1)"""
+class HEADADAPT_OT_calibrate(Modal, _Base, bpy.types.Operator):
+    """Compute the similarity that brings the scan into the template frame (paper sec 3.1; Esc cancels)"""
     bl_idname = "headadapt.calibrate"
     bl_label = "Calibrate"
 
@@ -280,25 +279,12 @@ class HEADADAPT_OT_calibrate(_Base, bpy.types.Operator):
     def poll(cls, context):
         return poll_with_message(cls, landmark_problem(context))
 
-    def execute(self, context):
-        s = settings(context)
-        s.calibration_rms_mm = -1.0
+    def make_run(self, context):
         try:
-            _verts, _tris, (_fit, _tpl_fdps, q_fdp, sim, info), rms_mm = check_clicks(context)
+            return CalibrateRun(context)
         except HeadAdaptError as exc:
-            return self.fail(str(exc))
-        head_mm = head_size_mm()
-        s.calibration_rms_mm = rms_mm
-        s.scan["headadapt_calibration"] = json.dumps({"matrix": sim.matrix4().tolist(), **{
-            k: v for k, v in info.items() if k != "residuals"}}, default=float)
-        notes = info["handedness"]["notes"]
-        msg = (f"calibrated ({info['method']}): RMS {rms_mm:.2f} mm over {len(q_fdp)} FDPs "
-               f"({100 * rms_mm / head_mm:.1f}% of the head's width), scan unit = {1000 * sim.scale:.4g} mm")
-        if notes:
-            self.report({"WARNING"}, msg + "; " + "; ".join(notes))
-        else:
-            self.report({"INFO"}, msg)
-        return {"FINISHED"}
+            settings(context).calibration_rms_mm = -1.0          # the earlier tick no longer speaks for the clicks
+            return str(exc)
 
 
 class HEADADAPT_OT_adapt(Modal, _Base, bpy.types.Operator):

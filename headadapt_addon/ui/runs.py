@@ -1,4 +1,4 @@
-"""The long work of the buttons (Suggest the Rest, Adapt, Bake) as Runs (jobs.Run: core work on a worker
+"""The long work of the buttons (Calibrate, Suggest the Rest, Adapt, Bake) as Runs (jobs.Run: core work on a worker
 thread, the scene written in the main thread when it is done), and the judging of the clicks that
 Calibrate and Suggest the Rest share; with the scene edits Adapt's result needs (the last result
 removed, Edit Mode left, the scene's unit)."""
@@ -15,17 +15,6 @@ from . import jobs, kept
 from .jobs import Job, Run
 from .props import apply_display
 from .state import adapt_options, head_size_mm, landmark_problem, scan_arrays, settings, template
-
-
-def check_clicks(context):
-    """The batch's step 1 on the scene's clicks (labels put right, the similarity, every click on the
-    scan), the RMS judged against the head's width: (the scan's verts and tris as read, pipeline.calibrate's
-    answer (fit, template FDPs, clicked FDPs, similarity, info), RMS mm), or a HeadAdaptError naming the
-    cause (too few, another unit, wrong names, a mirrored scan)."""
-    clicks = gather_clicks(context)
-    answer, rms_mm = judge_clicks(clicks)
-    kept.keep(clicks.key, answer)           # for the Adapt that follows (ui/kept.py)
-    return clicks.verts, clicks.tris, answer, rms_mm
 
 
 def gather_clicks(context):
@@ -106,6 +95,68 @@ def match_scene_unit(context, scale):
     return None if u.length_unit == "METERS" else u.length_unit.lower()
 
 
+def clicks_moved(scan, pts):
+    """Whether the scan's clicks differ from pts (a click moved, added or removed since a run began)."""
+    now = landmarks.get_landmarks(scan)
+    return set(now) != set(pts) or any(not np.array_equal(now[k], pts[k]) for k in now)
+
+
+class CalibrateRun(Run):
+    """One Calibrate: the clicks judged (pipeline.calibrate: the scan into the template's frame, a dense
+    scan clustered, its normals and spatial tree; about 1 s at 1M vertices, more on the larger scans
+    the readers take) on a Job, the calibration written to the scan at the end."""
+    what = "Calibrate"
+
+    def __init__(self, context):
+        self.clicks = gather_clicks(context)
+        self.scan = self.clicks.scan
+
+        def work(say):
+            say(0.0, "calibrating: the scan into the template's frame, its normals and spatial tree")
+            try:
+                value = judge_clicks(self.clicks)
+            except HeadAdaptError as exc:        # said, and the last calibration's tick taken off, in finish
+                return exc
+            say(1.0, "calibrated")
+            return value
+
+        self.work = work
+        self.job = Job(work)
+
+    def needs(self):
+        return (self.scan,)
+
+    def finish(self, context, value, report):
+        if isinstance(value, HeadAdaptError):
+            return fail_calibration(context, str(value), report)
+        (_fit, _tpl_fdps, q_fdp, sim, info), rms_mm = value
+        clicks = self.clicks
+        kept.keep(clicks.key, value[0])               # for the Adapt that follows (ui/kept.py)
+        if clicks_moved(self.scan, clicks.pts):
+            report({"WARNING"}, "the clicks changed while Calibrate ran: nothing written; press it again")
+            return {"CANCELLED"}
+        s = settings(context)
+        s.calibration_rms_mm = rms_mm
+        self.scan["headadapt_calibration"] = json.dumps({"matrix": sim.matrix4().tolist(), **{
+            k: v for k, v in info.items() if k != "residuals"}}, default=float)
+        notes = info["handedness"]["notes"]
+        msg = (f"calibrated ({info['method']}): RMS {rms_mm:.2f} mm over {len(q_fdp)} FDPs "
+               f"({100 * rms_mm / clicks.head_mm:.1f}% of the head's width), scan unit = {1000 * sim.scale:.4g} mm")
+        if notes:
+            report({"WARNING"}, msg + "; " + "; ".join(notes))
+        else:
+            report({"INFO"}, msg)
+        return {"FINISHED"}
+
+
+def fail_calibration(context, problem, report):
+    """A Calibrate refused: the problem said, and the tick of an earlier calibration taken off (it no
+    longer speaks for the clicks)."""
+    settings(context).calibration_rms_mm = -1.0
+    report({"ERROR"}, problem)
+    return {"CANCELLED"}
+
+
 class SuggestRun(Run):
     """One Suggest the Rest: the clicks judged as Calibrate judges them and the adaptation from them on
     a Job (about 1 s at 31k vertices, 2 s as a first press on 1M), the suggestions written at the end."""
@@ -138,8 +189,7 @@ class SuggestRun(Run):
     def finish(self, context, value, report):
         answer, proposed, wrong = value
         kept.keep(self.clicks.key, answer)           # for the Adapt that follows (ui/kept.py)
-        now = landmarks.get_landmarks(self.scan)
-        if set(now) != set(self.clicks.pts) or any(not np.array_equal(now[k], self.clicks.pts[k]) for k in now):
+        if clicks_moved(self.scan, self.clicks.pts):
             report({"WARNING"}, "the clicks changed while Suggest the Rest ran: nothing suggested; press it again")
             return {"CANCELLED"}
         if not proposed:

@@ -459,6 +459,77 @@ def test_suggest_from_a_button_works_on_a_thread_esc_cancels_and_a_click_moved_m
         assert all(np.array_equal(threaded[k], waited[k]) for k in waited)
 
 
+def test_calibrate_from_a_button_works_on_a_thread_esc_cancels_and_a_click_moved_meanwhile_writes_nothing(
+        ui_scene, monkeypatch):
+    """Calibrate prepares the scan (a dense scan clustered, its normals, its spatial tree: 1 s at 1M
+    vertices, more on the larger scans the readers take) and blocked Blender's window meanwhile, with no
+    progress and no way out. From a button now: on a thread, its progress shown, Adapt greyed while it
+    runs; Esc leaves the scan as it was; a click moved while it ran leaves the calibration unwritten;
+    left to run, the calibration bpy.ops writes; refused clicks take an earlier tick off. (The judging
+    is held at a gate until the test has seen the run going: the sample calibrates in 0.1 s.)"""
+    import threading
+
+    import bpy
+
+    from headadapt_addon.blender import landmarks
+    from headadapt_addon.ui import jobs, operators, runs
+
+    gate = threading.Event()
+    judge = runs.judge_clicks
+
+    def held(clicks):
+        assert gate.wait(60)
+        return judge(clicks)
+
+    monkeypatch.setattr(runs, "judge_clicks", held)
+    clicks = meshio.read_landmarks(SAMPLE_DIR / "landmarks.json")
+    with bpy.context.temp_override(**ui_scene):
+        ctx, s = bpy.context, bpy.context.scene.headadapt
+        scan = _sample_scan()
+        landmarks.set_landmarks(scan, clicks)
+        reports = []
+
+        def start():
+            gate.clear()
+            operators._forget_kept()                 # judged anew each time
+            return _from_the_button(ctx, runs.CalibrateRun(ctx), operators.HEADADAPT_OT_calibrate, reports)
+
+        op, event = start()
+        assert jobs.busy() == "Calibrate" and not bpy.ops.headadapt.adapt.poll()
+        assert event("MOUSEMOVE") == {"PASS_THROUGH"}             # the viewport stays usable
+        assert _progress_shown(event, s) and "calibrating" in s.progress_text
+        assert event("ESC") == {"CANCELLED"}
+        gate.set()
+        assert op._run.job.wait(60) and isinstance(op._run.job.error, jobs.Cancelled)
+        assert "headadapt_calibration" not in scan and s.calibration_rms_mm < 0
+        assert reports[-1] == ({"WARNING"}, "Calibrate cancelled: the scene is as it was")
+        assert jobs.busy() == "" and s.progress_text == "" and bpy.ops.headadapt.adapt.poll()
+        # a click moved while it runs: nothing written, said so
+        op, event = start()
+        landmarks.set_landmarks(scan, dict(clicks, **{"9.3": clicks["9.3"] + 1.0}))
+        gate.set()
+        assert _to_the_end(event) == {"CANCELLED"} and "headadapt_calibration" not in scan
+        assert reports[-1][0] == {"WARNING"} and "clicks changed while Calibrate ran" in reports[-1][1]
+        # left to run: the calibration, as bpy.ops writes it
+        landmarks.set_landmarks(scan, clicks)
+        op, event = start()
+        gate.set()
+        assert _to_the_end(event) == {"FINISHED"} and s.progress_text == "" and jobs.busy() == ""
+        assert reports[-1][0] == {"INFO"} and reports[-1][1].startswith("calibrated (")
+        threaded = (s.calibration_rms_mm, scan["headadapt_calibration"])
+        assert 0 <= threaded[0] < 10
+        del scan["headadapt_calibration"]
+        s.calibration_rms_mm = -1.0
+        assert bpy.ops.headadapt.calibrate() == {"FINISHED"}
+        assert (s.calibration_rms_mm, scan["headadapt_calibration"]) == threaded
+        # clicks in another unit, from the button: refused, the cause said, the earlier tick taken off
+        landmarks.set_landmarks(scan, {k: v / 10.0 for k, v in clicks.items()})
+        op, event = start()
+        gate.set()
+        assert _to_the_end(event) == {"CANCELLED"} and reports[-1][0] == {"ERROR"}
+        assert "another unit" in reports[-1][1] and s.calibration_rms_mm < 0
+
+
 @pytest.mark.slow
 def test_bake_reports_progress_and_esc_leaves_no_shape_keys(ui_scene, progress):
 

@@ -104,8 +104,12 @@ def test_adapt_pressed_twice_in_a_real_window_runs_once(tmp_path):
     """The button's own path (invoke: a worker thread and a timer): pressed again while it runs, Adapt
     is refused with the reason (before, a second run started beside the first); one result; usable
     again when done. Suggest the Rest from its button runs on a thread the same way (it adapts: about
-    a second, Blender's window blocked before), Adapt greyed meanwhile, its suggestions written at the end."""
+    a second, Blender's window blocked before), Adapt greyed meanwhile, its suggestions written at the end;
+    so does Calibrate, before them (1 s at 1M vertices), its calibration written at the end."""
     result = eval(_in_a_window("gui_adapt.py", tmp_path))
+    assert result["calibrate"] == ["RUNNING_MODAL"] and result["calibrate_busy"] == "Calibrate", result
+    assert result["adapt_greyed_by_calibrate"] and result["calibration_stored"], result
+    assert 0 < result["calibrated_rms_mm"] < 10, result
     assert result["first"] == ["RUNNING_MODAL"], result
     assert result["second"] == "refused: Adapt is running: wait for it, or press Esc to cancel it", result
     assert result["results"] == 1 and result["usable_again"], result
