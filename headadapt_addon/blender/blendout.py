@@ -174,11 +174,15 @@ def build_result_scene(tpl, result, scan_verts, scan_tris, landmarks, report, sc
     return root
 
 
-# Blender's own lines a batch log has no use for: each preview view's "Saved: '.../.preview.x/view00.png'",
-# the .blend's "Info: Saved copy as ".head.x.blend"" (both HeadAdapt's temporary files, renamed after), and
-# a headless GPU's context probes ("EGL Error (0x3009): EGL_BAD_MATCH ...", three a run, the render fine)
-CHATTER = re.compile(r"""\| Saved: '.*[/\\]\.[^/\\]+[/\\]view\d\d\.png'$|^Info: Saved copy as "\.[^"]*\.blend"$"""
-                     r"|^EGL Error \(0x[0-9A-Fa-f]+\): ")
+# Blender's own lines a batch log has no use for: each preview view's "Saved: '.../.preview.x/view00.png'"
+# (Blender 4.2 on: "render | Saved: ..." after a time stamp; 3.x: the line alone, then " Time: 00:00.32
+# (Saving: 00:00.04)" and a blank line), the .blend's "Info: Saved copy as ".head.x.blend"" (3.x: "Info:
+# Saved ".head.x.blend"", after "Info: Total files 0 | Changed 0 | Failed 0"), both HeadAdapt's temporary
+# files, renamed after; and a headless GPU's context probes ("EGL Error (0x3009): EGL_BAD_MATCH ...", three
+# a run, the render fine; 3.x: "Managed to successfully fallback to surfaceless EGL rendering!")
+CHATTER = re.compile(r"""(^|\| )Saved: '.*[/\\]\.[^/\\]+[/\\]view\d\d\.png'$|^ Time: [\d:.]+ \(Saving: [\d:.]+\)$|^\s*$"""
+                     r"""|^Info: Saved (copy as )?"\.[^"]*\.blend"$|^Info: Total files \d+ \| Changed \d+ \| Failed \d+$"""
+                     r"|^EGL Error \(0x[0-9A-Fa-f]+\): |^Managed to successfully fallback to surfaceless EGL rendering!$")
 
 
 @contextlib.contextmanager

@@ -49,8 +49,14 @@ def _run(*args, cwd):
 
 def test_adapt_in_a_blender_binary_writes_the_same_kind_of_result(tmp_path):
     proc = _run("adapt", "--scan", str(SAMPLE_DIR / "scan.ply"), "--landmarks", str(SAMPLE_DIR / "landmarks.json"),
-                "--out", str(tmp_path), "--levels", "2", "--blend", str(tmp_path / "head.blend"), cwd=tmp_path)
+                "--out", str(tmp_path), "--levels", "2", "--blend", str(tmp_path / "head.blend"),
+                "--preview", str(tmp_path / "preview.png"), cwd=tmp_path)
     assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-2000:]
+    # the log is HeadAdapt's: Blender 3.4's lines on the run's temporary files ("Saved: '.../view00.png'",
+    # " Time: ...", "Info: Saved ".head.x.blend"", "Info: Total files ...") and its GPU's fallback are not in it
+    log = proc.stdout + proc.stderr
+    assert "Saved" not in log and "Time:" not in log and "Total files" not in log and "EGL" not in log, log
+    assert (tmp_path / "preview.png").stat().st_size > 100_000
     verts, tris = meshio.read_mesh(tmp_path / "adapted_head.obj")
     np.testing.assert_array_equal(tris, load_template().skin.tris)
     rep = json.loads((tmp_path / "report.json").read_text())
