@@ -293,6 +293,9 @@ class AdaptRun(Run):
             msg += (f"; the dense scan was fitted on its {clustered['kept']:,} clusters "
                     f"({clustered['cell_mm']:g} mm grid)")
         warnings = outcome_text.warning_lines(result.outcome, result.flagged, result.dropped)
+        if clicks_moved(self.scan, self.pts):          # the result stands, but not for the clicks shown now
+            warnings = ["the clicks changed while Adapt ran: this result is from the clicks as they were when it "
+                        "started; press Adapt again for the new ones"] + warnings
         if warnings:        # not ok (folds left, far from the scan) or flagged FDPs: say why (Report panel too)
             report({"WARNING"}, msg + "; " + "; ".join(warnings))
         else:

@@ -365,6 +365,13 @@ def test_adapt_from_a_button_works_on_a_thread_and_esc_leaves_the_scene_as_it_wa
         answer = _to_the_end(event)
         assert answer == {"FINISHED"} and s.result_root.name == "scan adapted" and s.progress_text == ""
         assert reports[-1][0] == {"INFO"} and reports[-1][1].startswith("adapted: best level")
+        # a click moved while it runs: the result is made (it stands for the clicks it started from) and
+        # the report says it is not the moved clicks' (before: said nothing)
+        clicks = landmarks.get_landmarks(scan)
+        op, event = start(1)
+        landmarks.set_landmarks(scan, dict(clicks, **{"9.3": clicks["9.3"] + 1.0}))
+        assert _to_the_end(event) == {"FINISHED"} and s.result_root.name == "scan adapted"
+        assert reports[-1][0] == {"WARNING"} and "the clicks changed while Adapt ran" in reports[-1][1]
 
 
 def test_a_running_adapt_greys_adapt_and_bake_and_a_scan_removed_meanwhile_changes_nothing(ui_scene):
