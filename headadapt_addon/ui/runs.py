@@ -35,12 +35,12 @@ def judge_clicks(clicks):
     """gather_clicks' clicks judged (numpy only: a worker thread may run it): (pipeline.calibrate's
     answer, its RMS in mm), the answer kept from the last judging of the same scan, clicks and options
     if there is one; or a HeadAdaptError naming the cause (another unit, wrong names, a mirrored scan)."""
-    from ..core.adapt import calibration, pipeline
+    from ..core.adapt import calibration, pipeline, reach
     answer = kept.get(clicks.key)           # the same scan, clicks and options judged before: as it was
     try:
         if answer is None:
             answer = pipeline.calibrate(clicks.tpl, clicks.verts, clicks.tris, clicks.pts, clicks.options)
-            pipeline.check_on_surface(answer[0].scan, answer[2], clicks.options)
+            reach.check_on_surface(answer[0].scan, answer[2], clicks.options)
     except HeadAdaptError as exc:
         hint = calibration.unit_hint(clicks.verts, clicks.pts)
         raise HeadAdaptError(str(exc) + (f"; {hint}" if hint and hint.lower() not in str(exc).lower() else "")) from exc
