@@ -531,7 +531,7 @@ def _adapt_and_write(record, verts, tris, points, markers, outputs, levels, cali
     stages = report["stage_seconds"]          # each stage once: the .blend's own time without its bake
     if "--preview image" in outputs:
         t_preview = time.perf_counter()
-        _write_preview(outputs["--preview image"], tpl, result, verts, tris, points, report, log)
+        _write_preview(outputs["--preview image"], tpl, result, verts, tris, points, report, log, anatomy)
         stages["preview"] = time.perf_counter() - t_preview
     if "--blend file" in outputs:
         t_blend = time.perf_counter()
@@ -552,14 +552,15 @@ def _blendout():
     return blendout
 
 
-def _write_preview(path, tpl, result, verts, tris, points, report, log=_stdout):
-    """The preview PNG through blendout (bpy); Blender's failure to render or save names the file."""
+def _write_preview(path, tpl, result, verts, tris, points, report, log=_stdout, anatomy=None):
+    """The preview PNG through blendout (bpy); Blender's failure to render or save names the file.
+    anatomy: the transfer's, when the .blend's was made already (the preview then shows that one)."""
     from .core.exceptions import FileFormatError
 
     blendout = _blendout()
 
     try:
-        blendout.write_preview(path, tpl, result, verts, tris, points, report)
+        blendout.write_preview(path, tpl, result, verts, tris, points, report, anatomy=anatomy)
     except RuntimeError as exc:
         raise FileFormatError(f"cannot write {path}: {str(exc).strip()}") from None
     log(f"headadapt: preview (scan beside the head with its heat map, front and side) in {path}")

@@ -374,18 +374,21 @@ def render_preview(path, root, scan_obj, px=PREVIEW_VIEW_PX):
 PREVIEW_SCAN_CELL = 0.001      # m, template frame: the picture's copy of a finer scan is clustered to this grid
 
 
-def write_preview(path, tpl, result, scan_verts, scan_tris, landmarks, report):
+def write_preview(path, tpl, result, scan_verts, scan_tris, landmarks, report, anatomy=None):
     """The batch's --preview: a fresh scene with the scan and the adapted head (not baked), rendered
     from the front and the side, the scan beside the head with its heat map, into one PNG
     (render_preview). A scan finer than PREVIEW_SCAN_CELL is drawn from its clusters on that grid
     (mesh/simplify.py; a view is 640 pixels across a head, about half a millimetre a pixel): a
-    1M-vertex scan's side view took 6.5 s in software rendering, its clusters' 2.3 s."""
+    1M-vertex scan's side view took 6.5 s in software rendering, its clusters' 2.3 s. anatomy: the
+    transfer's, if the caller made it (the batch's --blend); else one made here, its seconds part of
+    the picture's (report's stage_seconds are left as they are: the caller times the preview whole)."""
     from ..core.mesh import simplify
 
     clustered = simplify.cluster_if_finer(scan_verts, scan_tris, PREVIEW_SCAN_CELL / result.similarity.scale)
     if clustered is not None:                                   # (the cell in the scan's unit)
         scan_verts, scan_tris, _ = clustered
     bpy.ops.wm.read_homefile(use_empty=True, use_factory_startup=True)
-    root = build_result_scene(tpl, result, scan_verts, scan_tris, landmarks, report, bake=False)
+    root = build_result_scene(tpl, result, scan_verts, scan_tris, landmarks, dict(report, stage_seconds={}),
+                              bake=False, anatomy=anatomy)
     scan_obj = next(o for o in bpy.context.scene.objects if "headadapt_landmarks" in o)
     return render_preview(path, root, scan_obj)

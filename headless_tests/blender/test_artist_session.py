@@ -824,6 +824,31 @@ def test_batch_preview_renders_the_scan_beside_the_head_front_and_side(tmp_path)
     assert bad.returncode == 2 and bad.stderr.strip().count("\n") == 0 and "name a .png file" in bad.stderr
 
 
+def test_the_preview_shows_the_blend_s_anatomy_and_leaves_the_stages_alone(clean_scene, tmp_path, monkeypatch):
+    """With --blend and --preview the batch made the anatomy twice (the preview's own transfer), and the
+    preview's transfer overwrote the stage "transfer" while its time was in "preview" too: the stages
+    could sum past the run's total (a fresh clone's CI: 7.979 against 7.971 s, test_folder_mode). The
+    preview now shows the anatomy it is given, and leaves the report's stages as they are."""
+    from headadapt_addon.blender import blendout
+    from headadapt_addon.core.adapt import AdaptOptions, adapt
+    from headadapt_addon.core.anatomy import transfer
+    from headadapt_addon.core.template import load_template
+
+    tpl = load_template()
+    verts, tris = meshio.read_mesh(SAMPLE_DIR / "scan.ply")[:2]
+    clicks = meshio.read_landmarks(SAMPLE_DIR / "landmarks.json")
+    result = adapt(tpl, verts, tris, clicks, AdaptOptions(max_levels=1))
+    anatomy = transfer(tpl, result)
+
+    def again(*_args, **_kwargs):
+        raise AssertionError("the anatomy was transferred again")
+
+    monkeypatch.setattr(blendout, "transfer", again)
+    report = {"stage_seconds": {"transfer": 0.25}}
+    blendout.write_preview(tmp_path / "p.png", tpl, result, verts, tris, clicks, report, anatomy=anatomy)
+    assert report["stage_seconds"] == {"transfer": 0.25} and (tmp_path / "p.png").stat().st_size > 100_000
+
+
 def test_blender_s_chatter_is_left_out_and_everything_else_passed_on(capfd):
     """blendout.without_chatter: at the file descriptors (where Blender's C code writes), the lines on
     HeadAdapt's temporary files and the GPU's probes are dropped, any other line is passed on to the
