@@ -6,9 +6,11 @@
 --lids SEEDS: only the lids, on adapted generated heads (tools/testheads.py legacy seeds): the lid
 gap (mm) of the blink (eyeBlinkLeft/Right: both lids) and of the upper lid alone (close_t_l/r_eyelid
 at 1, 1024 IRISD), and on how many heads each closes the eye (gap <= 1 mm, no folded triangle); the
-gap is taken between the margins' middles only, so each eye's seen eyeball is given too: the share of
-the eyeball's front (seen from the front) that no seen skin in front of it covers at rest, and closed
-as a share of that (a lid that comes down only in the middle leaves the eye open either side of it).
+gap is the margins' middles' (3.1 over 3.3, 3.2 over 3.4) height over each other, as seen from the
+front (negative: the upper margin past the lower one). It says nothing of the rest of the fissure, so
+each eye's seen eyeball is given too: the share of the eyeball's front that a person facing the head
+sees (core.skin.sight: rays from the front that meet the eyeball before any seen skin, so an eyeball
+showing through a lid counts as a slit does) at rest, and closed as a share of that.
 't' in SEEDS: the template.
 
 First what ships: every skin key of bake.bake (expressions, visemes, FAP keys, ARKit's 52) against its
@@ -42,8 +44,7 @@ sys.path.insert(0, str(ROOT))
 from headadapt_addon.core import mpeg4
 from headadapt_addon.core.anatomy import surface_point
 from headadapt_addon.core.mesh.inside import winding_numbers
-from headadapt_addon.core.mesh.spatial import MeshQuery
-from headadapt_addon.core.skin import arkit, bake, drive
+from headadapt_addon.core.skin import arkit, bake, drive, sight
 from headadapt_addon.core.skin.build import build as build_skin
 from headadapt_addon.core.template import load_template
 from tools import faceunits
@@ -66,9 +67,11 @@ def reference_field(refs, name):
 
 
 def lid_gaps(tpl, skin):
-    """(left, right) distance between the lid margins' middles (FDPs 3.1-3.3, 3.2-3.4), m."""
+    """(left, right) height of the upper lid margin's middle over the lower one's (FDPs 3.1 over 3.3, 3.2
+    over 3.4; the template frame's up, as the lid FAPs measure it: bake._fap_units), m. Negative: the
+    upper margin turned past the lower one, as a closed lid is."""
     fd, tris = tpl.meta["fdps"], tpl.skin.tris
-    return tuple(float(np.linalg.norm(surface_point(skin, tris, fd[a]) - surface_point(skin, tris, fd[b])))
+    return tuple(float(surface_point(skin, tris, fd[a])[2] - surface_point(skin, tris, fd[b])[2])
                  for a, b in LID_PAIRS)
 
 
@@ -166,19 +169,12 @@ def fit_units(tpl, model, refs):
     return out
 
 
-def seen_eyeball(skin, tpl, eye, step=0.25e-3):
-    """Share (0-1) of the eyeball's front (points (k,3), seen from the front, -y) that no seen skin
-    covers: rays along +y on a grid of `step` m over its outline, from 10 cm in front of its centre to
-    the centre's plane, none of which hits the skin (its triangles without a hidden corner)."""
-    centre = eye.mean(axis=0)
-    radius = 0.98 * np.linalg.norm(eye - centre, axis=1).max()
-    ticks = np.arange(-radius, radius, step)
-    grid = np.stack(np.meshgrid(ticks, ticks), axis=-1).reshape(-1, 2)
-    grid = grid[np.linalg.norm(grid, axis=1) < radius] + centre[[0, 2]]
-    origins = np.c_[grid[:, 0], np.full(len(grid), centre[1] - 0.1), grid[:, 1]]
-    seen = MeshQuery(skin, tpl.skin.tris[~tpl.hidden[tpl.skin.tris].any(axis=1)])
-    hits = seen.ray_cast(origins, np.tile([0.0, 1.0, 0.0], (len(grid), 1)), 0.1, both_ways=False)
-    return float(1.0 - hits.hit.mean())
+def seen_eyeball(skin, tpl, eye, side):
+    """Share (0-1) of the eyeball's outline from the front that a person facing the head sees of the
+    eyeball (core.skin.sight): eye its vertices (n,3), side "l" or "r" (its triangles)."""
+    vis = tpl.skin.tris[~tpl.hidden[tpl.skin.tris].any(axis=1)]
+    seen, rays = sight.eyeball_in_sight(skin, vis, eye, tpl.parts[f"eye_{side}"].tris)
+    return len(seen) / rays
 
 
 def lids(seeds):
@@ -200,7 +196,7 @@ def lids(seeds):
             head = testheads.make_head(seed)
             ana = anatomy.transfer(tpl, adapt.adapt(tpl, head.scan_verts, head.scan_tris, head.fdp_clicks))
             model, skin, eyes = build_skin(tpl, ana), ana.parts["skin"], [ana.parts[e] for e in ("eye_l", "eye_r")]
-        rest = [seen_eyeball(skin, tpl, eye) for eye in eyes]
+        rest = [seen_eyeball(skin, tpl, eye, side) for eye, side in zip(eyes, "lr")]
         cells = []
         for name, recipes in keys.items():
             gaps, folds, shown = [], 0, []
@@ -208,7 +204,7 @@ def lids(seeds):
                 x = model.equilibrium(recipe)
                 gaps.append(lid_gaps(tpl, x)[side] * 1000)
                 folds += len(model.flipped(x))
-                shown.append(seen_eyeball(x, tpl, eyes[side]) / max(rest[side], 1e-9))
+                shown.append(seen_eyeball(x, tpl, eyes[side], "lr"[side]) / max(rest[side], 1e-9))
             closed[name] += all(g <= 1.0 for g in gaps) and not folds
             seen[name] += shown
             cells.append(f"{gaps[0]:12.2f} / {gaps[1]:5.2f}, {folds:5d}, {shown[0]:9.0%} / {shown[1]:4.0%}")

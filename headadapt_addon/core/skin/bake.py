@@ -16,6 +16,7 @@ from scipy.spatial.transform import Rotation
 
 from .. import mpeg4
 from ..anatomy import surface_point
+from ..tol import TINY
 from . import arkit, drive, parallel
 from .build import build
 
@@ -38,17 +39,18 @@ def _fap_units(fap, tpl, parts, moved, fapus):
     """FAP units (of the FAP's FAPU) that a key at value 1 moves its FDP along the FAP's direction.
 
     The lid FAPs count how much of the opening the key closes (IRISD is the opening / 1024): the
-    margin's way to the other margin, in 3D, is not along the FAP's vertical direction, and a
-    closing key then stands for the standard's 1024 units, not fewer (a .fap's full close keys 1)."""
+    opening is the margins' middles' distance along the FAP's direction (as seen from the front), and
+    a key that closes it (the upper margin turned past the lower one, as a closed lid is: controls
+    .LID_OVERLAP) stands for the standard's 1024 units (a .fap's full close keys 1)."""
     ref = tpl.meta["fdps"].get(fap.fdp)
     if ref is None or fap.direction is None or ref["part"] not in moved:
         return None
     tris = tpl.parts[ref["part"]].tris
     if fap.unit == "IRISD" and fap.fdp in LID_MARGINS:
         other = tpl.meta["fdps"][LID_MARGINS[fap.fdp]]
-        gap0, gap1 = (np.linalg.norm(surface_point(x, tris, ref) - surface_point(x, tris, other))
+        gap0, gap1 = ((surface_point(x, tris, other) - surface_point(x, tris, ref)) @ np.asarray(fap.direction)
                       for x in (parts[ref["part"]], moved[ref["part"]]))
-        return float((gap0 - gap1) / fapus["IRISD"])
+        return float(1024 * (gap0 - max(gap1, 0.0)) / gap0) if gap0 > TINY else None   # None: shut at rest
     d = surface_point(moved[ref["part"]], tris, ref) - surface_point(parts[ref["part"]], tris, ref)
     return float(d @ np.asarray(fap.direction) / fapus[fap.unit])
 

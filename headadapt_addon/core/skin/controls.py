@@ -7,15 +7,27 @@ from __future__ import annotations
 import numpy as np
 
 from ..tol import TINY
+from . import sight
 
 LID_REACH = 1.7                       # the lid's turn fades to 0 at this many margin radii from the eye axis
 LOWER_LID_SHARE = 0.35                # the lower lid at 1 rises this share of the opening (as in a blink)
-LID_CORNER_POWER = 0.5                # the bump's shape along the fissure: 1/2, the half-ellipse of an open
-                                      # eye (at 2 the lids met in the middle only and left a slit either
-                                      # side, a third of the eyeball seen at rest; the ellipse's steep ends
-                                      # fold the canthus, which the unfold relaxes with LID_PIN held)
+# Along the fissure the turn is the opening as a person facing the head sees it (sight.py, at rest: at
+# each place along the lid axis, the angle about it from the top of the seen eyeball to its bottom),
+# measured on each head. (A half-ellipse through the margins' middles left 22% of the eyeball seen,
+# median of twelve heads' blinks, up to 37%: the upper margin, sunk onto the lower one's inner row to
+# meet FDP 3.3, went inside the eyeball, which showed through the closed lid.)
+LID_SIGHT_BIN = 1e-3                  # the seen opening's bins along the fissure, m
+LID_OVERLAP = np.radians(6.0)         # the margins turned past each other by this, so no slit stays between
+LID_OVERLAP_FULL = np.radians(30.0)   # ... where the opening is at least this; less where it is narrower
+                                      # (at the canthi an overlap folded the triangles joining the lids)
+LID_TAPER = 4e-3                      # the turn fades to 0 over this much of each end of the seen opening:
+                                      # the canthi's triangles join the two lids, and a full turn there
+                                      # folded them (2 mm: the relaxation of those folds reopened lids)
 LID_PIN = 0.97                        # lid skin turned at least this share stays on its plate while folds
                                       # round it are relaxed (relaxed too, the lid opened again)
+LID_RETRY, LID_RETRIES = 0.95, 6      # a closed lid whose held margin leaves a fold is turned again this
+                                      # much less far, up to this many times, before its skin is relaxed
+                                      # free (which reopened the upper lid alone to 36% of the eyeball seen)
 LID_ZONE_RINGS = 6                    # folds within this many rings of a turned lid's skin are first smoothed
                                       # in place a few at a time (positions, not displacement: relaxing the
                                       # displacement pulled the closed lid back up, to 39% of the eyeball
@@ -192,39 +204,40 @@ def sheet_muscles(tpl, skin, normals, fdps, n):
 
 
 def lid_controls(tpl, skin, parts, fdps, n):
-    """Lid plates: {control: (dofs, anchor stiffness, eye centre, full close angle rad, weight, axis,
-    radius ratio)}.
+    """Lid plates: {control: (dofs, anchor stiffness, eye centre, angle scale rad, weight, axis)}; a dof
+    turns by angle scale x activation x weight.
 
-    A lid turns about the axis through the eyeball's centre parallel to the line of its corners;
-    the turn fades from the margin (1) to the orbit's rim (0) and behind the eye's centre, and along
-    the fissure it is a smooth bump, 1 at 3.1/3.3 and 0 at the canthi, so the canthi stay. The upper
-    margin also sinks from its own distance to the axis to the lower margin's (radius ratio |3.3| /
-    |3.1| across the axis) and slides along the axis by 3.3's offset from 3.1: on a scanned head the
-    upper lid often stands well in front of the lower (radii 20 and 13 mm), and a turn alone leaves
-    the eye open by that step. The right eye is built as the left of the mirrored head (an adapted
-    head is not symmetric), then mirrored back.
+    A lid turns about the axis through the eyeball's centre parallel to the line of its corners; the
+    turn fades from the margin (1) to the orbit's rim (0) and behind the eye's centre, and along the
+    fissure it is the opening seen from the front at that place (and LID_OVERLAP more), so at 1 the
+    upper margin covers the eyeball down to the lower one all along the fissure, without sinking into
+    the eye. The right eye is built as the left of the mirrored head (an adapted head is not
+    symmetric), then mirrored back.
     """
     mirror = tpl.skin_mirror
     flip = np.array([-1.0, 1.0, 1.0])
     right_fdps = {a: fdps[b] * flip for a, b in (("3.1", "3.2"), ("3.3", "3.4"), ("3.7", "3.12"), ("3.11", "3.8"))}
     out = {}
     for side in "lr":             # the right eye: the left's construction on the mirrored head
+        eye = np.asarray(parts[f"eye_{side}"], dtype=np.float64)
         if side == "l":
-            side_skin, centre, side_fdps = skin, parts["eye_l"].mean(axis=0), fdps
+            side_skin, side_eye, side_fdps = skin, eye, fdps
         else:
-            side_skin, centre, side_fdps = skin[mirror] * flip, parts["eye_r"].mean(axis=0) * flip, right_fdps
-        for which, (v, w, angle, axis, sink) in _lid_plates(tpl, side_skin, centre, side_fdps).items():
+            side_skin, side_eye, side_fdps = skin[mirror] * flip, eye * flip, right_fdps
+        centre = side_eye.mean(axis=0)
+        plates = _lid_plates(tpl, side_skin, centre, side_fdps, (side_eye, tpl.parts[f"eye_{side}"].tris))
+        for which, (v, w, angle, axis) in plates.items():
             idx = np.concatenate([v + layer * n for layer in range(3)])
             wk = np.tile(w, 3)
-            if side == "r":       # back to the right side: an axis is a pseudovector (so the slide turns)
-                idx, centre_r, axis, sink = _mirror_dofs(tpl, idx, n), centre * flip, axis * -flip, (sink[0], -sink[1])
-            out[f"{which}_lid_{side}"] = (idx, np.full(len(idx), LID_STIFFNESS), centre if side == "l" else centre_r,
-                                          angle, wk, axis, sink)
+            if side == "r":       # back to the right side: an axis is a pseudovector
+                idx, centre, axis = _mirror_dofs(tpl, idx, n), eye.mean(axis=0), axis * -flip
+            out[f"{which}_lid_{side}"] = (idx, np.full(len(idx), LID_STIFFNESS), centre, angle, wk, axis)
     return out
 
 
-def _lid_plates(tpl, skin, centre, fdps):
-    """The left eye's lid plates of skin (n,3): {upper/lower: (vertices, weight, full angle, axis, sink)}."""
+def _lid_plates(tpl, skin, centre, fdps, eye):
+    """The left eye's lid plates of skin (n,3), eye (its vertices, triangles): {upper/lower: (vertices,
+    weight, angle scale, axis)}."""
     outer, inner = fdps["3.7"], fdps["3.11"]
     axis = (outer - inner) / np.linalg.norm(outer - inner)
     axis = np.array([axis[0], 0.0, axis[2]]) / np.linalg.norm([axis[0], axis[2]])   # no forward tilt
@@ -234,34 +247,47 @@ def _lid_plates(tpl, skin, centre, fdps):
     radial = np.linalg.norm(rel - np.outer(along, axis), axis=1)    # distance from the axis
     r_margin = np.linalg.norm(fdps["3.1"] - centre)
     half = 0.5 * np.linalg.norm(outer - inner)
-    mid = 0.5 * ((outer - centre) @ axis + (inner - centre) @ axis)
     r1, r3 = (fdps[k] - centre for k in ("3.1", "3.3"))
-    shift = float((r3 - r1) @ axis)                                  # 3.3 beside 3.1 along the fissure
     r1, r3 = r1 - (r1 @ axis) * axis, r3 - (r3 @ axis) * axis
-    full = abs(float(np.arctan2(np.cross(r1, r3) @ axis, r1 @ r3)))   # margin to margin, about the axis
+    down = float(np.sign(np.cross(r1, r3) @ axis)) or 1.0            # the turn that takes 3.1 toward 3.3
+    # the angle scale: the margins' middles' angle (the weights below are the opening over it)
+    full = max(abs(float(np.arctan2(np.cross(r1, r3) @ axis, r1 @ r3))), LID_OVERLAP)
     line_z = inner[2] + (along - (inner - centre) @ axis) / (2 * half) * (outer[2] - inner[2])
     upper = skin[:, 2] > line_z
-    # Along the fissure the turn is a bump, 1 at 3.1 and 0 where the margins join (the canthi: the
-    # ends of the lid skin's edges from the upper side to the lower near the fissure), shaped as the
-    # opening (a half-ellipse), a function of `along` only so the lid's rim (two rows 0.5 mm apart)
-    # turns as one.
-    tris = tpl.skin.tris
-    e = np.concatenate([tris[:, [0, 1]], tris[:, [1, 2]], tris[:, [2, 0]]])
-    e = e[(upper[e[:, 0]] != upper[e[:, 1]]) & lid[e].any(axis=1) & (rel[e, 1] < 0).all(axis=1)
-          & (radial[e] < LID_REACH * r_margin).all(axis=1)]
-    joined = along[np.unique(e)]
-    lo = joined[joined < mid].max(initial=mid - half)
-    hi = joined[joined > mid].min(initial=mid + half)
-    t = (along - 0.5 * (lo + hi)) / (0.5 * (hi - lo))
-    t1 = ((fdps["3.1"] - centre) @ axis - 0.5 * (lo + hi)) / (0.5 * (hi - lo))
-    opening = (np.clip(1.0 - t ** 2, 0.0, 1.0) / max(1.0 - t1 ** 2, 0.5)) ** LID_CORNER_POWER
+    opening = seen_opening(tpl, skin, eye, centre, axis, r1 / max(np.linalg.norm(r1), TINY), down)
     front = np.clip(-rel[:, 1] / (LID_FRONT * r_margin), 0, 1)      # the socket behind the eye stays
     w = (np.clip((LID_REACH * r_margin - radial) / ((LID_REACH - 1.0) * r_margin), 0, 1)
-         * np.clip(opening, 0, 1) * front * lid)
-    ratio = float(np.linalg.norm(r3) / max(np.linalg.norm(r1), TINY))
+         * opening(along) / full * front * lid)
     out = {}
     for which, mask in (("upper", (w > 0) & upper), ("lower", (w > 0) & ~upper)):
         v = np.flatnonzero(mask)
-        out[which] = (v, w[v], full * (1.0 if which == "upper" else LOWER_LID_SHARE), axis,
-                      (ratio, shift) if which == "upper" else (1.0, 0.0))
+        out[which] = (v, w[v], full * (1.0 if which == "upper" else LOWER_LID_SHARE), axis)
     return out
+
+
+def seen_opening(tpl, skin, eye, centre, axis, up, down):
+    """The turn (rad) that closes the eye at each place along the lid axis, as a function of that place
+    (m from the centre): the angle about the axis between the top and the bottom of the eyeball seen
+    from the front at rest (up: a unit direction across the axis, down: the sign of the closing turn),
+    LID_OVERLAP more where it is open, fading to 0 over LID_TAPER at its ends. No eyeball seen (the
+    eye closed at rest): 0."""
+    vis = tpl.skin.tris[~tpl.hidden[tpl.skin.tris].any(axis=1)]
+    seen, _ = sight.eyeball_in_sight(skin, vis, eye[0], eye[1])
+    if len(seen) < 2:
+        return lambda a: np.zeros(np.shape(a))
+    rel = seen - centre
+    a = rel @ axis
+    across = rel - np.outer(a, axis)
+    angle = down * np.arctan2(across @ np.cross(axis, up), across @ up)
+    edges = np.arange(a.min(), a.max() + LID_SIGHT_BIN, LID_SIGHT_BIN)
+    k = np.clip(np.digitize(a, edges) - 1, 0, len(edges) - 2)
+    top, bottom = np.full(len(edges) - 1, np.inf), np.full(len(edges) - 1, -np.inf)
+    np.minimum.at(top, k, angle)
+    np.maximum.at(bottom, k, angle)
+    ok = np.isfinite(top)
+    at = 0.5 * (edges[1:] + edges[:-1])[ok]
+    height = (bottom - top)[ok]
+    turn = height + LID_OVERLAP * np.clip(height / LID_OVERLAP_FULL, 0, 1)
+    turn *= np.clip((at - a.min()) / LID_TAPER, 0, 1) * np.clip((a.max() - at) / LID_TAPER, 0, 1)
+    at, turn = np.r_[a.min() - LID_SIGHT_BIN, at, a.max() + LID_SIGHT_BIN], np.r_[0.0, turn, 0.0]
+    return lambda x: np.interp(x, at, turn, left=0.0, right=0.0)

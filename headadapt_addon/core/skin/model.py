@@ -19,9 +19,9 @@ Controls, each with an activation (0 = rest, 1 = full):
 - `jaw_open` turns the mandible about the jaw pivot, `jaw_thrust` / `jaw_shift` slide it; the
   skin follows through its springs to the bone;
 - `upper_lid_l/r`, `lower_lid_l/r` turn the lids about the eyeball's centre (the tarsal plate
-  riding on the eye); at 1 the upper margin meets the lower all along the fissure (it turns and,
-  near the end, sinks onto the lower margin), the lower rises LOWER_LID_SHARE of the opening (the
-  upper then stops on it). The plate is held to its turned place by springs, and its skin is then
+  riding on the eye); at 1 the upper margin covers the eyeball down to the lower all along the
+  fissure, as seen from the front (controls.seen_opening), the lower rises LOWER_LID_SHARE of the
+  opening (the upper then stops on it). The plate is held to its turned place by springs, and its skin is then
   put there (the solve alone shears the lid's thin rim), the correction eased into the skin around;
 - `cheek_puff_l/r` push the cheeks out (air pressure in the mouth);
 - sheet muscles (controls.SHEET_MUSCLES: cheek raiser, levator alaeque nasi, depressor
@@ -39,7 +39,8 @@ import numpy as np
 
 from ..mesh import geometry
 from .contact import Contact, ContactMixin
-from .controls import LID_EASE, LID_EASE_STEPS, LID_KINEMATIC, LID_PIN, LID_ZONE_RINGS, LOWER_LID_SHARE
+from .controls import (LID_EASE, LID_EASE_STEPS, LID_KINEMATIC, LID_PIN, LID_RETRIES, LID_RETRY, LID_ZONE_RINGS,
+                       LOWER_LID_SHARE)
 from .jaw import JawMixin
 
 
@@ -55,8 +56,8 @@ class SkinModel(JawMixin, ContactMixin):
     on_mandible: np.ndarray       # (n,) hypodermis vertex rides on the mandible
     jaw_pivot: np.ndarray
     jaw_axis: np.ndarray
-    lids: dict                    # control -> (dofs (k,), stiffness (k,), eye centre, full angle rad, weight (k,),
-                                  # axis, (radius ratio, slide along the axis m) the upper margin sinks by)
+    lids: dict                    # control -> (dofs (k,), stiffness (k,), eye centre, angle scale rad, weight (k,),
+                                  # axis)
     bone_dist: np.ndarray         # (n,2) rest distance of each skin vertex to the cranium, the mandible
     bone_normal: np.ndarray       # (n,3) outward bone normal there
     free: np.ndarray              # (n,) vertices the non-penetration applies to
@@ -79,6 +80,12 @@ class SkinModel(JawMixin, ContactMixin):
         unknown = set(activations) - set(self.controls)
         if unknown:
             raise KeyError(f"unknown control(s): {', '.join(sorted(unknown))}")
+        return self._equilibrium(activations, 1.0)
+
+    def _equilibrium(self, activations, lid_scale):
+        """equilibrium, the lids' activations times lid_scale."""
+        asked = activations
+        activations = {k: v * lid_scale if k in self.lids else v for k, v in asked.items()}
         f = np.zeros_like(self.rest)
         for name, (idx, force) in self.forces.items():
             if name in activations:
@@ -93,23 +100,15 @@ class SkinModel(JawMixin, ContactMixin):
         placed = []
         pinned = np.zeros(self.n, bool)        # the lid skin turned all the way: held where its plate put it
         zone = np.zeros(self.n, bool)          # the turned lids' skin
-        for name, (idx, k, centre, full, weight, axis, sink) in self.lids.items():
+        for name, (idx, k, centre, full, weight, axis) in self.lids.items():
             if name in activations:
                 sign, act = (1.0 if name.startswith("upper") else -1.0), activations[name]
-                meet = 1.0
                 if sign > 0:                   # the upper margin stops where the risen lower one is
-                    meet = 1.0 - LOWER_LID_SHARE * max(activations.get(name.replace("upper", "lower"), 0.0), 0.0)
-                    act = min(act, meet)
+                    act = min(act, 1.0 - LOWER_LID_SHARE * max(activations.get(name.replace("upper", "lower"), 0.0), 0.0))
                 angle = (sign * full * act * weight)[:, None]
                 rel = self.rest[idx] - centre                 # Rodrigues, one angle per dof
                 turned = (rel * np.cos(angle) + np.cross(axis, rel) * np.sin(angle)
                           + np.outer(rel @ axis, axis) * (1 - np.cos(angle)))
-                ratio, shift = sink             # ... and sinks onto the lower margin near the end
-                if ratio != 1.0 or shift:
-                    along = np.outer(turned @ axis, axis)
-                    near_end = np.clip(act / max(meet, 1e-6), 0.0, 1.0) ** 2 * weight
-                    turned = (along + (turned - along) * (1.0 + (ratio - 1.0) * near_end)[:, None]
-                              + np.outer(shift * near_end, axis))
                 f[idx] += k[:, None] * (turned - rel)
                 skin = idx < self.n                # the lid's skin is put on its plate's target
                 placed.append((idx[skin], (centre + turned)[skin], np.clip(weight[skin] / LID_KINEMATIC, 0, 1)))
@@ -133,7 +132,9 @@ class SkinModel(JawMixin, ContactMixin):
         if pinned.any():                       # the closed margin held while the folds round it relax,
             held = self._unfold(x.copy(), copy.deepcopy(contact), pinned, self._grown(zone, LID_ZONE_RINGS))
             if not len(self.flipped(held)):    # unless that leaves a fold (Fran's eyes, shut in the scan:
-                return held                    # her crumpled lid folds by the held middle): then as free skin
+                return held                    # her crumpled lid folds by the held middle): then the lids
+            if lid_scale > LID_RETRY ** LID_RETRIES * (1 + 1e-9):     # a little less far, and at last as
+                return self._equilibrium(asked, lid_scale * LID_RETRY)    # free skin
         return self._unfold(x, contact)
 
     def _symmetric(self, x):
