@@ -39,8 +39,16 @@ import numpy as np
 
 from ..mesh import geometry
 from .contact import Contact, ContactMixin
-from .controls import (LID_EASE, LID_EASE_STEPS, LID_KINEMATIC, LID_PIN, LID_RETRIES, LID_RETRY, LID_ZONE_RINGS,
-                       LOWER_LID_SHARE)
+from .controls import (
+    LID_EASE,
+    LID_EASE_STEPS,
+    LID_KINEMATIC,
+    LID_PIN,
+    LID_RETRIES,
+    LID_RETRY,
+    LID_ZONE_RINGS,
+    LOWER_LID_SHARE,
+)
 from .jaw import JawMixin
 
 
