@@ -25,7 +25,7 @@ LID_TAPER = 4e-3                      # the turn fades to 0 over this much of ea
                                       # folded them (2 mm: the relaxation of those folds reopened lids)
 LID_PIN = 0.97                        # lid skin turned at least this share stays on its plate while folds
                                       # round it are relaxed (relaxed too, the lid opened again)
-LID_RETRY, LID_RETRIES = 0.95, 6      # a closed lid whose held margin leaves a fold is turned again this
+LID_RETRY, LID_RETRIES = 0.95, 3      # a closed lid whose held margin leaves a fold is turned again this
                                       # much less far, up to this many times, before its skin is relaxed
                                       # free (which reopened the upper lid alone to 36% of the eyeball seen)
 LID_ZONE_RINGS = 6                    # folds within this many rings of a turned lid's skin are first smoothed

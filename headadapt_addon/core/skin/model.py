@@ -120,7 +120,8 @@ class SkinModel(JawMixin, ContactMixin):
                 f[idx] += k[:, None] * (turned - rel)
                 skin = idx < self.n                # the lid's skin is put on its plate's target
                 placed.append((idx[skin], (centre + turned)[skin], np.clip(weight[skin] / LID_KINEMATIC, 0, 1)))
-                pinned[idx[skin][weight[skin] >= LID_PIN]] = True
+                if act > 0:                    # a closing lid's margin is held (an opening one's is not)
+                    pinned[idx[skin][weight[skin] >= LID_PIN]] = True
                 zone[idx[skin][weight[skin] > 0]] = True
         u = self.solve(f)
         x = self.rest[: self.n] + u[: self.n]
@@ -138,12 +139,15 @@ class SkinModel(JawMixin, ContactMixin):
         contact = Contact(bn, (rot, t), symmetric=self._symmetric(x))
         x = self._retract_from_bone(self._keep_out_of_bone(x, contact), contact)
         if pinned.any():                       # the closed margin held while the folds round it relax,
-            held = self._unfold(x.copy(), copy.deepcopy(contact), pinned, self._grown(zone, LID_ZONE_RINGS))
-            if not len(self.flipped(held)):    # unless that leaves a fold (Fran's eyes, shut in the scan:
-                return held                    # her crumpled lid folds by the held middle): then the lids
-            if lid_scale > LID_RETRY ** LID_RETRIES * (1 + 1e-9):     # a little less far, and at last as
-                return self._equilibrium(asked, lid_scale * LID_RETRY)    # free skin
-        return self._unfold(x, contact)
+            near = self._grown(zone, LID_ZONE_RINGS)
+            held = self._unfold(x.copy(), copy.deepcopy(contact), pinned, near)
+            left = self.flipped(held)
+            if not len(left):                  # unless that leaves a fold (Fran's eyes, shut in the scan:
+                return held                    # her crumpled lid folds by the held middle): then, a fold by
+            closing = any(v > 0 for k, v in asked.items() if k in self.lids)   # a fold by closing lids:
+            if closing and near[self.tris[left]].any() and lid_scale > LID_RETRY ** LID_RETRIES * (1 + 1e-9):
+                return self._equilibrium(asked, lid_scale * LID_RETRY)    # the lids a little less far,
+        return self._unfold(x, contact)        # and at last (or a fold elsewhere) as free skin
 
     def _symmetric(self, x):
         """Whether skin x (n,3) is the template's mirror image of itself (to rounding): then the
