@@ -199,10 +199,15 @@ class ContactMixin:
                     break
                 # the pushes and give-backs reach a few rings past the patch they looked at: one
                 # look over all the skin the relaxation moved (Fran's lip corner left 2 vertices
-                # 0.1 mm inside the cranium), then again round if that look folded a triangle
+                # 0.1 mm inside the cranium), then again round only if that look folded a triangle
+                # (looked at again and again, the pushes need not settle: under numpy 2 Fran's
+                # mouthSmileLeft spent its last 60 steps so, and the last look folded a cheek
+                # triangle that no step was left to see)
                 before = x.copy()
                 x = self._retract_from_bone(self._keep_out_of_bone(x, contact, changed), contact, changed)
                 changed = (x != before).any(axis=1)
+                if not len(flipped(x)):
+                    break
                 continue
             corners = np.unique(self.tris[bad])
             age[corners] += 1
