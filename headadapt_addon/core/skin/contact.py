@@ -201,8 +201,8 @@ class ContactMixin:
                 # look over all the skin the relaxation moved (Fran's lip corner left 2 vertices
                 # 0.1 mm inside the cranium), then again round only if that look folded a triangle
                 # (looked at again and again, the pushes need not settle: under numpy 2 Fran's
-                # mouthSmileLeft spent its last 60 steps so, and the last look folded a cheek
-                # triangle that no step was left to see)
+                # mouthSmileLeft spent its last 65 steps so, now and then folding a triangle and
+                # relaxing it, and the last look folded a cheek triangle no step was left to see)
                 before = x.copy()
                 x = self._retract_from_bone(self._keep_out_of_bone(x, contact, changed), contact, changed)
                 changed = (x != before).any(axis=1)
