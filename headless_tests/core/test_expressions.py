@@ -154,9 +154,10 @@ def test_lids_close_the_eye_on_adapted_heads(tpl, legacy_heads, seed):
 @pytest.mark.slow
 def test_a_blink_hides_most_of_the_eye_on_scan_like_heads_never_tuned_on(tpl, testheads):
     # the lids were tuned on the legacy heads; on the scan-like ones (only what a scanner sees, people's
-    # clicks, the panel's 8) the first two heads' four eyes: a blink leaves 63%, 5%, 2% and 24% of the
-    # eyeball seen at rest (median 14.5%; Limits: head 100's left lid folds and is relaxed free); the
-    # lids before (a half-ellipse, the upper margin sunk onto FDP 3.3) left 60%, 53%, 54% and 67%
+    # clicks, the panel's 8) the first two heads' four eyes: a blink leaves 27%, 5%, 2% and 24% of the
+    # eyeball seen at rest. The lids before stop 62 (a half-ellipse, the upper margin sunk onto FDP 3.3)
+    # left 60%, 53%, 54% and 67%; head 100's left lid, whose held margin keeps a fold, left 63% relaxed
+    # free until the relaxed skin was given back toward the closed lid (contact._given_back)
     from headadapt_addon.core import adapt, anatomy
 
     shown = []
@@ -171,7 +172,7 @@ def test_a_blink_hides_most_of_the_eye_on_scan_like_heads_never_tuned_on(tpl, te
             assert len(m.flipped(x)) == 0
             shown.append(bench.seen_eyeball(x, tpl, eye, "lr"[side])
                          / bench.seen_eyeball(ana.parts["skin"], tpl, eye, "lr"[side]))
-    assert np.median(shown) < 0.25, shown
+    assert np.median(shown) < 0.25 and max(shown) < 0.35, shown
 
 
 @pytest.mark.slow

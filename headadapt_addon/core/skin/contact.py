@@ -23,6 +23,11 @@ UNFOLD_SMOOTH = 10                    # a fold's corners' positions first take t
                                       # margin and opened a blinking eye 3.6 mm)
 UNFOLD_GIVE = 0.99                    # share of the displacement kept per Jacobi step, to the power of the
                                       # steps a fold has outlasted UNFOLD_RINGS (the rest shape has no fold)
+GIVE_BACK_SHARES = (0.2, 0.4, 0.6, 0.8, 1.0)   # skin relaxed free goes back toward where the controls
+                                      # put it in these steps (shares of the way), each vertex as far as
+                                      # no triangle folds (a closing lid relaxed free went back up: a
+                                      # blink left up to 74% of the eyeball seen at rest on scan-like heads)
+GIVE_BACK_ROUNDS = 30                 # a step's vertices by a folded triangle are held back, at most this often
 CONTACT_ROUNDS = 4                    # pushes per contact step (a point at a bone opening may need more)
 OPENING_REACH = 0.01                  # bone faces this close to a hole of the bone are 'by an opening', m
 RETRACT_STEPS = 8                     # bisection steps of the last guard against penetration
@@ -242,6 +247,28 @@ class ContactMixin:
             x = self._retract_from_bone(self._keep_out_of_bone(x, contact, moved), contact, moved)
             changed |= (x != before).any(axis=1)
         return x
+
+
+    def _given_back(self, y, x, contact):
+        """Fold-free skin y (n,3), relaxed from x, with each vertex the relaxation moved taken back
+        toward x by GIVE_BACK_SHARES of the way, step by step, as far as no triangle folds with the
+        skin kept out of the bone: at each step the corners of a triangle that would fold stay where
+        the last step left them. Relaxed free, a closing lid whose held margin kept a fold went back
+        up; given back, head 105's left blink shows 11% of the eyeball seen at rest, not 74%."""
+        moved = (y != x).any(axis=1)
+        z = y
+        for share in GIVE_BACK_SHARES:
+            step = z.copy()
+            step[moved] = y[moved] + share * (x[moved] - y[moved])
+            for _ in range(GIVE_BACK_ROUNDS):
+                out = self._retract_from_bone(self._keep_out_of_bone(step, contact, moved), contact, moved)
+                bad = self.flipped(out)
+                if not len(bad):
+                    z = out
+                    break
+                held = np.unique(self.tris[bad])
+                step[held] = z[held]
+        return z
 
 
 class _FoldWatch:

@@ -147,7 +147,10 @@ class SkinModel(JawMixin, ContactMixin):
             closing = any(v > 0 for k, v in asked.items() if k in self.lids)   # a fold by closing lids:
             if closing and near[self.tris[left]].any() and lid_scale > LID_RETRY ** LID_RETRIES * (1 + 1e-9):
                 return self._equilibrium(asked, lid_scale * LID_RETRY)    # the lids a little less far,
-        return self._unfold(x, contact)        # and at last (or a fold elsewhere) as free skin
+        free = self._unfold(x, contact)        # and at last (or a fold elsewhere) as free skin,
+        if pinned.any() and not len(self.flipped(free)):      # whose closing lids then go back down
+            free = self._given_back(free, x, contact)         # as far as they fold nothing
+        return free
 
     def _symmetric(self, x):
         """Whether skin x (n,3) is the template's mirror image of itself (to rounding): then the
