@@ -140,7 +140,7 @@ def test_lids_close_the_eye_on_adapted_heads(tpl, legacy_heads, seed):
         assert len(m.flipped(x)) == 0
         # the upper lid alone closes the eye too, on all 12 legacy heads 0-11 (README). Head 9's right
         # one stayed 3.9 mm open until a fold's corners were smoothed in place before its displacement
-        # was relaxed (contact.UNFOLD_SMOOTH); on 0, 2 and 8 a triangle by the outer canthus folded and
+        # was relaxed (unfold.UNFOLD_SMOOTH); on 0, 2 and 8 a triangle by the outer canthus folded and
         # relaxing it reopened the lid 2.6-3.6 mm, until the margin's middle was held while the folds
         # round it are relaxed (controls.LID_PIN).
         assert bench.lid_gaps(tpl, x)[side] <= CLOSED, (seed, name, bench.lid_gaps(tpl, x))
@@ -157,7 +157,7 @@ def test_a_blink_hides_most_of_the_eye_on_scan_like_heads_never_tuned_on(tpl, te
     # clicks, the panel's 8) the first two heads' four eyes: a blink leaves 27%, 5%, 2% and 24% of the
     # eyeball seen at rest. The lids before stop 62 (a half-ellipse, the upper margin sunk onto FDP 3.3)
     # left 60%, 53%, 54% and 67%; head 100's left lid, whose held margin keeps a fold, left 63% relaxed
-    # free until the relaxed skin was given back toward the closed lid (contact._given_back)
+    # free until the relaxed skin was given back toward the closed lid (unfold._given_back)
     from headadapt_addon.core import adapt, anatomy
 
     shown = []
@@ -179,7 +179,7 @@ def test_a_blink_hides_most_of_the_eye_on_scan_like_heads_never_tuned_on(tpl, te
 def test_a_blink_closes_the_eye_where_a_triangle_at_the_canthus_folds(tpl, legacy_heads):
     # legacy head 8: blinking, a tiny triangle at the left inner canthus stayed folded through the
     # relaxations of the displacement around it; the patch grew ring by ring over the lid margin and
-    # opened the eye 3.6 mm. Its corners' positions smoothed first (contact.UNFOLD_SMOOTH) it unfolds
+    # opened the eye 3.6 mm. Its corners' positions smoothed first (unfold.UNFOLD_SMOOTH) it unfolds
     # where it is.
     _, _, ana = legacy_heads(8)
     m = build_skin(tpl, ana)

@@ -3,7 +3,8 @@ jaw and lids (build -> SkinModel.equilibrium), MPEG-4 FAPs and expressions as ac
 baked to shape keys (bake).
 
 build: assembly; model: the model and its quasi-static solve; controls: muscles, pressure, lids;
-contact: skin against bone; jaw: the mandible's turn and slide.
+contact: skin against bone; unfold: folded triangles undone; sight: what a person facing the head sees
+of an eyeball; jaw: the mandible's turn and slide.
 """
 
 from .build import build

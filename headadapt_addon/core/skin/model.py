@@ -50,10 +50,11 @@ from .controls import (
     LOWER_LID_SHARE,
 )
 from .jaw import JawMixin
+from .unfold import UnfoldMixin
 
 
 @dataclasses.dataclass
-class SkinModel(JawMixin, ContactMixin):
+class SkinModel(JawMixin, ContactMixin, UnfoldMixin):
     """The assembled mass-spring model: rest positions (3n,3), factorised stiffness, controls."""
     n: int
     rest: np.ndarray
