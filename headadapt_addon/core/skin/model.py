@@ -145,8 +145,8 @@ class SkinModel(JawMixin, ContactMixin, UnfoldMixin):
             left = self.flipped(held)
             if not len(left):                  # unless that leaves a fold (Fran's eyes, shut in the scan:
                 return held                    # her crumpled lid folds by the held middle): then, a fold by
-            closing = any(v > 0 for k, v in asked.items() if k in self.lids)   # a fold by closing lids:
-            if closing and near[self.tris[left]].any() and lid_scale > LID_RETRY ** LID_RETRIES * (1 + 1e-9):
+            # the closing lids (only a closing lid's margin is pinned):
+            if near[self.tris[left]].any() and lid_scale > LID_RETRY ** LID_RETRIES * (1 + 1e-9):
                 return self._equilibrium(asked, lid_scale * LID_RETRY)    # the lids a little less far,
         free = self._unfold(x, contact)        # and at last (or a fold elsewhere) as free skin,
         if pinned.any() and not len(self.flipped(free)):      # whose closing lids then go back down
